@@ -1,0 +1,1 @@
+//! Graph files: YAML pipelines, validated before any process starts.

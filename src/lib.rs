@@ -1,0 +1,6 @@
+//! gprflow runtime: messages, bus, stage SDK, graph files, launcher and MCAP I/O.
+
+pub mod bus;
+pub mod graph;
+pub mod msg;
+pub mod stage;
