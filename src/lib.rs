@@ -2,5 +2,7 @@
 
 pub mod bus;
 pub mod graph;
+pub mod launch;
 pub mod msg;
+pub mod record;
 pub mod stage;

@@ -49,7 +49,8 @@ fn err(topic: &str, what: impl std::fmt::Display) -> BusError {
 
 /// iceoryx2 settings of a run: every process of the run uses the same prefix.
 pub fn run_config(prefix: &str) -> std::result::Result<Config, String> {
-    let mut config = Config::global_config().clone();
+    // defaults, not a config file: every process of a run must agree
+    let mut config = Config::default();
     config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
     Ok(config)
 }
@@ -109,13 +110,13 @@ impl IoxTransport {
             .map_err(|e| err(&topic.name, format!("cannot open publish-subscribe service: {e:?}")))
     }
 
-    fn event(&self, topic: &TopicConfig) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>> {
-        let name = ServiceName::new(&format!("gprflow/{}/wake", topic.name))
+    fn event(&self, topic: &TopicConfig, purpose: &str) -> Result<EventFactory> {
+        let name = ServiceName::new(&format!("gprflow/{}/{purpose}", topic.name))
             .map_err(|e| err(&topic.name, format!("service name: {e:?}")))?;
         self.node
             .service_builder(&name)
             .event()
-            .max_notifiers(MAX_PUBLISHERS)
+            .max_notifiers(MAX_SUBSCRIBERS)
             .max_listeners(MAX_SUBSCRIBERS)
             .open_or_create()
             .map_err(|e| err(&topic.name, format!("cannot open event service: {e:?}")))
@@ -126,6 +127,7 @@ impl Transport for IoxTransport {
     fn publisher(&self, topic: &TopicConfig) -> Result<Box<dyn Publisher>> {
         let service = self.pubsub(topic)?;
         let stop = self.stop.clone();
+        let latest_only = topic.latest_only;
         let strategy = if topic.latest_only {
             BackpressureStrategy::DiscardData
         } else {
@@ -146,18 +148,24 @@ impl Transport for IoxTransport {
                     let pause = if info.elapsed_time > Duration::from_millis(10) { 500 } else { 20 };
                     std::thread::sleep(Duration::from_micros(pause));
                 }
-                iceoryx2::port::BackpressureAction::FollowBackpressureyStrategy
+                if latest_only {
+                    iceoryx2::port::BackpressureAction::DiscardData
+                } else {
+                    iceoryx2::port::BackpressureAction::Retry
+                }
             })
             .create()
             .map_err(|e| err(&topic.name, format!("cannot create publisher: {e:?}")))?;
         let notifier = self
-            .event(topic)?
+            .event(topic, "wake")?
             .notifier_builder()
             .create()
             .map_err(|e| err(&topic.name, format!("cannot create notifier: {e:?}")))?;
+        let ready = self.event(topic, "ready")?;
         Ok(Box::new(IoxPub {
             topic: topic.name.clone(),
             service,
+            ready,
             publisher,
             notifier,
         }))
@@ -171,21 +179,28 @@ impl Transport for IoxTransport {
             .create()
             .map_err(|e| err(&topic.name, format!("cannot create subscriber: {e:?}")))?;
         let listener = self
-            .event(topic)?
+            .event(topic, "wake")?
             .listener_builder()
             .create()
             .map_err(|e| err(&topic.name, format!("cannot create listener: {e:?}")))?;
         Ok(Box::new(IoxSub {
             topic: topic.name.clone(),
+            service,
+            ready: self.event(topic, "ready")?,
+            ready_notifier: None,
             subscriber,
             listener,
         }))
     }
 }
 
+type EventFactory = iceoryx2::service::port_factory::event::PortFactory<ipc::Service>;
+
 struct IoxPub {
     topic: String,
     service: PubSubFactory<ipc::Service, [u8], FrameHeader>,
+    /// Subscribers announce here that they have attached (see [`IoxSub::attach`]).
+    ready: EventFactory,
     publisher: IoxPublisher<ipc::Service, [u8], FrameHeader>,
     notifier: Notifier<ipc::Service>,
 }
@@ -218,7 +233,13 @@ impl Publisher for IoxPub {
     }
 
     fn subscriber_count(&self) -> usize {
-        let n = self.service.dynamic_config().number_of_subscribers();
+        // Only subscribers that attached to our connection count: frames sent to one that
+        // has registered but not attached are lost once its buffer is full.
+        let n = self
+            .service
+            .dynamic_config()
+            .number_of_subscribers()
+            .min(self.ready.dynamic_config().number_of_notifiers());
         if n > 0 {
             let _ = self.publisher.update_connections();
         }
@@ -228,6 +249,9 @@ impl Publisher for IoxPub {
 
 struct IoxSub {
     topic: String,
+    service: PubSubFactory<ipc::Service, [u8], FrameHeader>,
+    ready: EventFactory,
+    ready_notifier: Option<Notifier<ipc::Service>>,
     subscriber: IoxSubscriber<ipc::Service, [u8], FrameHeader>,
     listener: Listener<ipc::Service>,
 }
@@ -256,9 +280,40 @@ impl Subscriber for IoxSub {
         {
             return Ok(());
         }
-        self.listener
-            .timed_wait(|_| {}, timeout)
-            .map_err(|e| err(&self.topic, format!("wait failed: {e:?}")))?;
+        match self.listener.timed_wait(|_| {}, timeout) {
+            // a signal woke us: the caller checks its stop flag
+            Ok(_) | Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+            Err(e) => Err(err(&self.topic, format!("wait failed: {e:?}"))),
+        }
+    }
+
+    fn attach(&mut self, timeout: Duration, stop: &dyn Fn() -> bool) -> Result<()> {
+        let start = std::time::Instant::now();
+        while self.service.dynamic_config().number_of_publishers() == 0 {
+            if stop() {
+                return Err(BusError::Shutdown);
+            }
+            if start.elapsed() > timeout {
+                return Err(BusError::HandshakeTimeout {
+                    topic: self.topic.clone(),
+                    connected: 0,
+                    expected: 1,
+                    waited: start.elapsed(),
+                });
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        self.subscriber
+            .update_connections()
+            .map_err(|e| err(&self.topic, format!("cannot attach to the publisher: {e:?}")))?;
+        if self.ready_notifier.is_none() {
+            self.ready_notifier = Some(
+                self.ready
+                    .notifier_builder()
+                    .create()
+                    .map_err(|e| err(&self.topic, format!("cannot announce readiness: {e:?}")))?,
+            );
+        }
         Ok(())
     }
 }

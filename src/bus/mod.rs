@@ -163,6 +163,19 @@ pub enum BusError {
         /// The encoding error.
         source: MsgError,
     },
+    /// A message stamped before what the topic already promised (an earlier message or a
+    /// watermark): consumers merging by stamp would see time go backwards.
+    #[error("topic `{topic}` seq {seq}: stamp {stamp_ns} ns is before {watermark_ns} ns already sent on this topic")]
+    StampBackwards {
+        /// Topic concerned.
+        topic: String,
+        /// Sequence number the message would have had.
+        seq: u64,
+        /// Its stamp.
+        stamp_ns: i64,
+        /// The topic's watermark.
+        watermark_ns: i64,
+    },
     /// Shutdown was requested while waiting.
     #[error("shutdown requested")]
     Shutdown,
@@ -264,6 +277,14 @@ pub trait Subscriber {
     /// # Errors
     /// Transport errors.
     fn wait(&mut self, timeout: Duration) -> Result<()>;
+    /// Waits for the topic's publisher and attaches to it; only then does the publisher's
+    /// [`Publisher::subscriber_count`] count this subscriber. Call once before the run.
+    ///
+    /// # Errors
+    /// [`BusError::HandshakeTimeout`], [`BusError::Shutdown`] or transport errors.
+    fn attach(&mut self, _timeout: Duration, _stop: &dyn Fn() -> bool) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// A received frame. Its payload stays where the transport put it (shared memory for
@@ -418,6 +439,14 @@ impl Outbox {
 
     fn send_encoded(&mut self, stamp_ns: i64, len: usize, fill: &mut FillFn<'_>) -> Result<u64> {
         let seq = self.next_seq;
+        if stamp_ns < self.watermark_ns {
+            return Err(BusError::StampBackwards {
+                topic: self.topic().to_owned(),
+                seq,
+                stamp_ns,
+                watermark_ns: self.watermark_ns,
+            });
+        }
         let reached = self.publisher.send_with(FrameHeader::data(seq, stamp_ns), len, fill)?;
         self.check_reached(seq, reached)?;
         self.next_seq += 1;
@@ -578,6 +607,25 @@ impl Inbox {
                 Delivery::EndOfStream
             }
         }))
+    }
+
+    /// Attaches to the topic's publisher (see [`Subscriber::attach`]).
+    ///
+    /// # Errors
+    /// As [`Subscriber::attach`].
+    pub fn attach(&mut self, timeout: Duration, stop: &dyn Fn() -> bool) -> Result<()> {
+        self.subscriber.attach(timeout, stop)
+    }
+
+    /// Blocks until a frame may be queued or `timeout` passes (does not consume).
+    ///
+    /// # Errors
+    /// Transport errors.
+    pub fn wait(&mut self, timeout: Duration) -> Result<()> {
+        if self.ended {
+            return Ok(());
+        }
+        self.subscriber.wait(timeout)
     }
 
     /// Waits for the next delivery, up to `timeout`.

@@ -1,1 +1,129 @@
 //! Graph files: YAML pipelines, validated before any process starts.
+//!
+//! A graph file names its nodes (a stage kind or a user's executable each), wires outputs
+//! to inputs, optionally places nodes on hosts and lists topics to record:
+//!
+//! ```yaml
+//! name: toy
+//! inputs: { count: "100" }                  # variables, overridable with --set count=5
+//! nodes:
+//!   gen:  { stage: toy_source, params: { count: "${count}" } }
+//!   gain: { stage: toy_gain, inputs: { trace: gen/trace }, params: { gain: 2.0 } }
+//! record: { topics: ["*"] }
+//! ```
+//!
+//! [`load`] reads, parses and checks one: unknown fields, stages and parameters, inputs
+//! wired to missing outputs or to another message type, duplicate names, nodes on no host,
+//! cycles without a feedback input. Every [`GraphError`] names the file, line, column and
+//! key path. [`json_schema`] gives the file format's JSON schema (checked in as
+//! `graphs/graph.schema.json`, for editors).
+
+mod check;
+mod error;
+mod file;
+mod model;
+mod positions;
+mod vars;
+
+#[cfg(test)]
+mod tests;
+
+use std::path::Path;
+
+pub use error::{GraphError, GraphErrorKind, Location, Position, UnknownErrorKind};
+pub use file::{RecordDecl, ZenohDecl};
+pub use model::{Graph, Host, Input, Node, NodeKind};
+
+use check::Source;
+use positions::{Positions, ScanProblem};
+use serde_saphyr::MessageFormatter as _;
+
+use crate::stage::StageCatalog;
+
+/// Reads, parses and checks the graph file at `path`.
+///
+/// `overrides` are the command line's `--set name=value` pairs; each must name a variable
+/// declared under `inputs:`. Relative paths in the file are kept as written.
+///
+/// # Errors
+/// [`GraphError::Io`] when the file cannot be read, else as [`parse`].
+pub fn load(path: &Path, overrides: &[(String, String)], catalog: &StageCatalog) -> Result<Graph, GraphError> {
+    let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io {
+        file: path.to_owned(),
+        source,
+    })?;
+    parse(&text, path, overrides, catalog)
+}
+
+/// Parses and checks the graph in `text`, read from `file` (used in messages and kept in
+/// the [`Graph`]).
+///
+/// # Errors
+/// The first problem found, with its line, column and key path.
+pub fn parse(
+    text: &str,
+    file: &Path,
+    overrides: &[(String, String)],
+    catalog: &StageCatalog,
+) -> Result<Graph, GraphError> {
+    let positions = Positions::scan(text).map_err(|problem| scan_error(file, problem))?;
+    let source = Source {
+        file,
+        text,
+        positions: &positions,
+    };
+    let decl: file::GraphFile = serde_saphyr::from_str(text).map_err(|e| structure_error(&source, &e))?;
+    check::check(decl, &source, overrides, catalog)
+}
+
+/// The JSON schema of the graph file format, generated from the types that read it.
+pub fn json_schema() -> schemars::Schema {
+    schemars::schema_for!(file::GraphFile)
+}
+
+fn scan_error(file: &Path, problem: ScanProblem) -> GraphError {
+    match problem {
+        ScanProblem::Syntax { position, message } => GraphError::Syntax {
+            at: Location {
+                file: file.to_owned(),
+                position: Some(position),
+                key_path: String::new(),
+            },
+            message,
+        },
+        ScanProblem::DuplicateKey { path, key, at, first } => GraphError::DuplicateKey {
+            at: Location {
+                file: file.to_owned(),
+                position: Some(at),
+                key_path: path.join("."),
+            },
+            key,
+            first,
+        },
+    }
+}
+
+/// A deserialiser error: the file is YAML, but not a graph file.
+fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphError {
+    let position = error
+        .location()
+        .filter(|location| location.line() > 0)
+        .map(|location| Position {
+            line: location.line() as usize,
+            column: location.column() as usize,
+        });
+    let key_path = position
+        .and_then(|position| source.positions.path_at(position))
+        .map(|path| path.join("."))
+        .unwrap_or_default();
+    let message = serde_saphyr::DefaultMessageFormatter.format_message(error.without_snippet());
+    GraphError::Structure {
+        at: Location {
+            file: source.file.to_owned(),
+            position,
+            key_path,
+        },
+        // The message may quote the file: keep control characters out of terminals.
+        message: message.chars().map(|c| if c.is_control() { ' ' } else { c }).collect(),
+    }
+}

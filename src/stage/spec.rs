@@ -59,6 +59,8 @@ impl fmt::Display for ParamError {
     }
 }
 
+impl std::error::Error for ParamError {}
+
 /// What the graph checker and the launcher need to know about a stage kind.
 /// Implemented by each stage crate (usually through [`StageDescriptor`]).
 pub trait StageInfo: Send + Sync {

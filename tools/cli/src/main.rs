@@ -1,1 +1,114 @@
-fn main() {}
+//! `gprflow`: launch graphs, run stages, inspect and recover recordings.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// GPR localisation and mapping pipelines.
+#[derive(Debug, Parser)]
+#[command(name = "gprflow", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Log filter (tracing `EnvFilter` syntax), e.g. `info` or `gprflow=debug`.
+    #[arg(long, global = true, default_value = "info")]
+    log: String,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run a graph: one process per node, optionally recorded.
+    ///
+    /// Example: gprflow launch graphs/toy.yaml --set count=500 --record out.mcap
+    Launch {
+        /// Graph file (YAML).
+        graph: PathBuf,
+        /// Override a graph input variable: `--set key=value` (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        /// Record the graph's topics to this MCAP file.
+        #[arg(long)]
+        record: Option<PathBuf>,
+        /// Run only this host's share of the graph.
+        #[arg(long)]
+        host: Option<String>,
+        /// Frames each topic buffers per subscriber.
+        #[arg(long, default_value_t = 16)]
+        buffer: usize,
+        /// Check the graph and print the plan without starting anything.
+        #[arg(long)]
+        dry_run: bool,
+    },
+    /// Run one stage as this process (the launcher uses it).
+    ///
+    /// Example: gprflow stage toy_gain --spec /tmp/gprflow-1234/gain.json
+    Stage {
+        /// Stage kind.
+        kind: String,
+        /// Node spec written by the launcher (JSON).
+        #[arg(long)]
+        spec: PathBuf,
+    },
+    /// Show a recording's topics, types, counts, rates and time span.
+    ///
+    /// Example: gprflow inspect recordings/toy.mcap
+    Inspect {
+        /// MCAP file.
+        file: PathBuf,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Print every message decoded, one JSON object per line.
+        #[arg(long)]
+        dump_json: bool,
+    },
+    /// Rewrite a recording cut off mid-write into a complete file.
+    ///
+    /// Example: gprflow recover crashed.mcap -o recovered.mcap
+    Recover {
+        /// The damaged MCAP file.
+        file: PathBuf,
+        /// Where to write the recovered file.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// List the stages this build knows, with their ports.
+    ///
+    /// Example: gprflow stages
+    Stages,
+    /// Check a graph file without running it (errors name file, line and key).
+    ///
+    /// Example: gprflow check graphs/toy.yaml
+    Check {
+        /// Graph file.
+        graph: PathBuf,
+        /// Override a graph input variable.
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    use gprflow_cli::commands;
+    let result = match cli.command {
+        Command::Launch { graph, set, record, host, buffer, dry_run } => {
+            commands::launch(&commands::LaunchArgs { graph, set, record, host, buffer, dry_run })
+        }
+        Command::Stage { kind, spec } => commands::stage(&kind, &spec),
+        Command::Inspect { file, json, dump_json } => commands::inspect(&file, json, dump_json),
+        Command::Recover { file, output } => commands::recover(&file, &output),
+        Command::Stages => commands::stages(),
+        Command::Check { graph, set } => commands::check(&graph, &set),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

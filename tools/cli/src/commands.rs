@@ -1,0 +1,247 @@
+//! The commands behind each `gprflow` subcommand. Each returns the process exit code.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use gprflow::launch::{self, LaunchEvent, LaunchObserver, LaunchOptions};
+use gprflow::record::{self, Recording};
+use gprflow::stage::{InputPorts, NodeSpec, bind_signals};
+
+use crate::catalog;
+
+/// Arguments of `gprflow launch`.
+#[derive(Debug)]
+pub struct LaunchArgs {
+    /// Graph file.
+    pub graph: PathBuf,
+    /// `key=value` overrides.
+    pub set: Vec<String>,
+    /// Record to this file.
+    pub record: Option<PathBuf>,
+    /// Only this host's nodes.
+    pub host: Option<String>,
+    /// Topic buffer depth.
+    pub buffer: usize,
+    /// Plan only.
+    pub dry_run: bool,
+}
+
+fn parse_overrides(set: &[String]) -> Result<Vec<(String, String)>> {
+    set.iter()
+        .map(|kv| {
+            kv.split_once('=')
+                .map(|(k, v)| (k.trim().to_owned(), v.to_owned()))
+                .with_context(|| format!("--set `{kv}`: expected KEY=VALUE"))
+        })
+        .collect()
+}
+
+/// Shows logs and a progress bar while a graph runs.
+struct Console {
+    bar: indicatif::ProgressBar,
+}
+
+impl LaunchObserver for Console {
+    fn event(&mut self, event: LaunchEvent<'_>) {
+        match event {
+            LaunchEvent::Started { node, pid } => tracing::debug!("started {node} (pid {pid})"),
+            LaunchEvent::Progress { node, done, total } => {
+                if self.bar.length() != Some(total) {
+                    self.bar.set_length(total);
+                    self.bar.set_message(format!("{node}: messages"));
+                }
+                self.bar.set_position(done);
+            }
+            LaunchEvent::Log { node, line } => self.bar.suspend(|| eprintln!("[{node}] {line}")),
+            LaunchEvent::Exited { node, status } => tracing::debug!("{node}: {status}"),
+            LaunchEvent::Stopping { reason } => self.bar.suspend(|| eprintln!("stopping all stages: {reason}")),
+        }
+    }
+}
+
+/// `gprflow launch`.
+///
+/// # Errors
+/// Graph, plan and start-up errors.
+pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
+    let overrides = parse_overrides(&args.set)?;
+    let graph = gprflow::graph::load(&args.graph, &overrides, &catalog())?;
+    let exe = std::env::current_exe().context("cannot find the gprflow executable")?;
+    let mut opts = LaunchOptions::new(exe);
+    opts.record.clone_from(&args.record);
+    opts.host.clone_from(&args.host);
+    opts.buffer = args.buffer.max(1);
+    let plan = launch::plan(&graph, &opts)?;
+    if args.dry_run {
+        let specs: Vec<&NodeSpec> = plan.nodes.iter().map(|(s, _)| s).collect();
+        println!("{}", serde_json::to_string_pretty(&specs)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let stop = bind_signals().context("cannot install signal handlers")?;
+    let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::stderr());
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg} {wide_bar} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let mut console = Console { bar };
+    let report = launch::launch(&plan, &opts, &stop, &mut console)?;
+    console.bar.finish_and_clear();
+    for n in &report.nodes {
+        let failed_first = report.first_failure.as_deref() == Some(&n.node);
+        if failed_first {
+            eprintln!("error: node `{}` failed ({}); last lines of its stderr:", n.node, n.describe());
+            for l in &n.stderr_tail {
+                eprintln!("  | {l}");
+            }
+        } else if !n.succeeded() && !n.stopped_by_launcher {
+            eprintln!("error: node `{}` ended with {}", n.node, n.describe());
+        }
+    }
+    if !report.cleaned_up.is_empty() {
+        eprintln!("removed {} stale shared-memory resources of run {}", report.cleaned_up.len(), report.run_id);
+    }
+    if report.succeeded() {
+        eprintln!("graph `{}` finished in {:.2} s ({} processes)", graph.name, report.wall.as_secs_f64(), report.nodes.len());
+        if let Some(r) = &args.record {
+            eprintln!("recorded {}", r.display());
+        }
+        Ok(ExitCode::SUCCESS)
+    } else if report.interrupted {
+        eprintln!("interrupted");
+        Ok(ExitCode::from(130))
+    } else {
+        Ok(ExitCode::from(1))
+    }
+}
+
+/// `gprflow stage`.
+///
+/// # Errors
+/// Unreadable spec or the stage's error.
+pub fn stage(kind: &str, spec_file: &Path) -> Result<ExitCode> {
+    let text = std::fs::read_to_string(spec_file).with_context(|| format!("cannot read {}", spec_file.display()))?;
+    let spec: NodeSpec = serde_json::from_str(&text).with_context(|| format!("{}: not a node spec", spec_file.display()))?;
+    let stop = bind_signals().context("cannot install signal handlers")?;
+    crate::run_stage(kind, &spec, &stop).with_context(|| format!("node `{}` ({kind})", spec.node))?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `gprflow inspect`.
+///
+/// # Errors
+/// Unreadable recording.
+pub fn inspect(file: &Path, json: bool, dump_json: bool) -> Result<ExitCode> {
+    let rec = Recording::open(file)?;
+    let mut out = std::io::stdout().lock();
+    if dump_json {
+        let mut failed = None;
+        let (_, stopped) = rec.scan(|m| {
+            if failed.is_some() {
+                return;
+            }
+            let message = gprflow::msg::decode_to_json(m.msg_type, m.data)
+                .unwrap_or_else(|e| serde_json::json!({ "decode_error": e.to_string() }));
+            let line = serde_json::json!({
+                "topic": m.topic, "sequence": m.sequence, "log_time": m.log_time,
+                "schema": m.msg_type, "message": message,
+            });
+            if let Err(e) = writeln!(out, "{line}") {
+                failed = Some(e);
+            }
+        });
+        if let Some(e) = failed {
+            return Err(e.into());
+        }
+        if let Some(at) = stopped {
+            eprintln!("warning: {}: reading stopped early {at}; run `gprflow recover`", file.display());
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let summary = record::inspect(&rec);
+    if json {
+        writeln!(out, "{}", serde_json::to_string_pretty(&summary)?)?;
+    } else {
+        let span = (summary.end_ns.saturating_sub(summary.start_ns)) as f64 * 1e-9;
+        writeln!(out, "file:      {} ({} bytes)", summary.path, summary.bytes)?;
+        writeln!(out, "messages:  {} over {:.3} s", summary.messages, span)?;
+        if let Some(m) = summary.metadata.get("gprflow") {
+            let get = |k: &str| m.get(k).map_or("?", String::as_str);
+            writeln!(out, "run:       {} graph `{}` ({}), gprflow {} ({})", get("run_id"), get("graph_name"), get("graph_file"), get("version"), get("commit"))?;
+        }
+        if !summary.attachments.is_empty() {
+            writeln!(out, "attached:  {}", summary.attachments.join(", "))?;
+        }
+        writeln!(out, "{:<28} {:<32} {:>8} {:>10} {:>9}", "topic", "type", "count", "rate Hz", "problems")?;
+        for t in &summary.topics {
+            let problems = match (t.decode_errors, t.seq_gaps) {
+                (0, 0) => String::new(),
+                (d, g) => format!("{d} undecodable, {g} seq gaps"),
+            };
+            writeln!(out, "{:<28} {:<32} {:>8} {:>10.2} {problems}", t.topic, t.msg_type, t.count, t.rate_hz)?;
+        }
+        for (topic, seq, e) in &summary.decode_errors {
+            writeln!(out, "decode error: {topic} seq {seq}: {e}")?;
+        }
+    }
+    if let Some(at) = &summary.truncated {
+        eprintln!("warning: {}: reading stopped early {at}; every complete chunk before it was read. `gprflow recover` rewrites it.", file.display());
+        return Ok(ExitCode::from(1));
+    }
+    if !summary.decode_errors.is_empty() {
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `gprflow recover`.
+///
+/// # Errors
+/// Unreadable input or unwritable output.
+pub fn recover(file: &Path, output: &Path) -> Result<ExitCode> {
+    if file == output {
+        bail!("refusing to overwrite {} in place; give another output", file.display());
+    }
+    let (kept, stopped) = record::recover(file, output)?;
+    match stopped {
+        Some(at) => eprintln!("recovered {kept} messages into {} (the input stopped {at})", output.display()),
+        None => eprintln!("{} was complete; rewrote {kept} messages into {}", file.display(), output.display()),
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `gprflow stages`.
+///
+/// # Errors
+/// Output errors.
+pub fn stages() -> Result<ExitCode> {
+    let mut out = std::io::stdout().lock();
+    for s in catalog().iter() {
+        writeln!(out, "{:<12} {}", s.name(), s.about())?;
+        match s.inputs() {
+            InputPorts::Any => writeln!(out, "    in:  any topics")?,
+            InputPorts::Fixed(inputs) => {
+                for i in inputs {
+                    writeln!(out, "    in:  {} ({}){}", i.port.name, i.port.msg_type, if i.optional { ", optional" } else { "" })?;
+                }
+            }
+        }
+        if let Ok(outputs) = s.outputs(&serde_json::Value::Null) {
+            for o in outputs {
+                writeln!(out, "    out: {} ({})", o.name, o.msg_type)?;
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `gprflow check`.
+///
+/// # Errors
+/// The graph's first error.
+pub fn check(graph: &Path, set: &[String]) -> Result<ExitCode> {
+    let g = gprflow::graph::load(graph, &parse_overrides(set)?, &catalog())?;
+    eprintln!("{}: graph `{}` is valid ({} nodes, {} topics)", graph.display(), g.name, g.nodes.len(), g.topics().len());
+    Ok(ExitCode::SUCCESS)
+}

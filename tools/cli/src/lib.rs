@@ -1,0 +1,46 @@
+//! The `gprflow` command's library: the catalog of stages this build knows and the
+//! commands, so that `main.rs` only parses arguments.
+
+pub mod commands;
+
+use gprflow::record::{RecordStage, ReplayStage};
+use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
+use gprflow_stage_toy::{ToyGain, ToySource};
+
+/// Every stage kind this build can run.
+pub fn catalog() -> StageCatalog {
+    StageCatalog::new()
+        .with(describe::<ToySource>())
+        .with(describe::<ToyGain>())
+        .with(describe::<RecordStage>())
+        .with(describe::<ReplayStage>())
+}
+
+/// Runs the stage named in `spec` in this process over iceoryx2.
+///
+/// # Errors
+/// Unknown stage, or the stage's error.
+pub fn run_stage(
+    kind: &str,
+    spec: &NodeSpec,
+    stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> Result<RunReport, StageError> {
+    let transport = gprflow::bus::iox::IoxTransport::new(&spec.node, &spec.prefix, stop.clone())?;
+    fn run<S: Stage>(
+        spec: &NodeSpec,
+        t: &gprflow::bus::iox::IoxTransport,
+        stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
+    ) -> Result<RunReport, StageError> {
+        run_node::<S>(spec, t, stop)
+    }
+    match kind {
+        ToySource::NAME => run::<ToySource>(spec, &transport, stop),
+        ToyGain::NAME => run::<ToyGain>(spec, &transport, stop),
+        RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
+        ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
+        other => Err(StageError::Failed(format!(
+            "unknown stage `{other}` (known: {})",
+            catalog().iter().map(|s| s.name().to_owned()).collect::<Vec<_>>().join(", ")
+        ))),
+    }
+}
