@@ -80,6 +80,7 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let stop = bind_signals().context("cannot install signal handlers")?;
+    eprintln!("gprflow: graph `{}` run {} ({} processes)", graph.name, plan.run_id, plan.nodes.len());
     let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::stderr());
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} {wide_bar} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
