@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Every test: formatting, lints, unit and property tests, end-to-end tests with real
+# processes, and the peer check against the Python MCAP reader (installed into .venv-peers).
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+tools/peer/setup-venv.sh
+cargo fmt --all -- --check
+cargo clippy --workspace --all-targets -- -D warnings
+cargo nextest run --workspace --no-fail-fast
