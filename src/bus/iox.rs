@@ -51,7 +51,8 @@ fn err(topic: &str, what: impl std::fmt::Display) -> BusError {
 pub fn run_config(prefix: &str) -> std::result::Result<Config, String> {
     // defaults, not a config file: every process of a run must agree
     let mut config = Config::default();
-    config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
+    config.global.prefix =
+        FileName::new(prefix.as_bytes()).map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
     Ok(config)
 }
 
@@ -145,7 +146,11 @@ impl Transport for IoxTransport {
                 // Spin briefly, then sleep so that a full consumer on the other core gets
                 // the CPU instead of a busy publisher.
                 if info.retries > 64 {
-                    let pause = if info.elapsed_time > Duration::from_millis(10) { 500 } else { 20 };
+                    let pause = if info.elapsed_time > Duration::from_millis(10) {
+                        500
+                    } else {
+                        20
+                    };
                     std::thread::sleep(Duration::from_micros(pause));
                 }
                 if latest_only {

@@ -100,7 +100,9 @@ pub enum BusError {
         what: String,
     },
     /// A publisher found fewer subscribers than expected: a consumer is gone.
-    #[error("topic `{topic}` seq {seq}: delivered to {reached} of {expected} subscribers (a consumer exited or crashed)")]
+    #[error(
+        "topic `{topic}` seq {seq}: delivered to {reached} of {expected} subscribers (a consumer exited or crashed)"
+    )]
     SubscriberLost {
         /// Topic concerned.
         topic: String,

@@ -127,7 +127,13 @@ fn resolve_vars(
 }
 
 /// Turns a substitution problem at `path` into an error.
-fn var_error(problem: VarProblem, path: &[String], text: &str, vars: &BTreeMap<String, String>, source: &Source<'_>) -> GraphError {
+fn var_error(
+    problem: VarProblem,
+    path: &[String],
+    text: &str,
+    vars: &BTreeMap<String, String>,
+    source: &Source<'_>,
+) -> GraphError {
     let at = source.at_value(path);
     match problem {
         VarProblem::Unknown(name) => GraphError::UnknownVariable {
@@ -169,9 +175,7 @@ fn check_node<'c>(
             if node.outputs.is_some() {
                 return Err(GraphError::Structure {
                     at: source.at_key(&here(&["outputs"])),
-                    message: format!(
-                        "`outputs` is for `exec` nodes; stage `{stage_name}` declares its own"
-                    ),
+                    message: format!("`outputs` is for `exec` nodes; stage `{stage_name}` declares its own"),
                 });
             }
             let stage = catalog.get(stage_name).ok_or_else(|| GraphError::UnknownStage {
@@ -304,21 +308,24 @@ fn check_inputs(
             })
             .transpose()?;
 
-        let producer = drafts.iter().find(|d| d.name == from_node).ok_or_else(|| {
-            GraphError::NoSuchNode {
+        let producer = drafts
+            .iter()
+            .find(|d| d.name == from_node)
+            .ok_or_else(|| GraphError::NoSuchNode {
                 at: source.at_value(&reference_path),
                 node: from_node.to_owned(),
                 known: list(drafts.iter().map(|d| d.name.as_str())),
-            }
-        })?;
-        let output = producer.outputs.iter().find(|port| port.name == from_output).ok_or_else(|| {
-            GraphError::NoSuchOutput {
+            })?;
+        let output = producer
+            .outputs
+            .iter()
+            .find(|port| port.name == from_output)
+            .ok_or_else(|| GraphError::NoSuchOutput {
                 at: source.at_value(&reference_path),
                 node: from_node.to_owned(),
                 output: from_output.to_owned(),
                 known: list(producer.outputs.iter().map(|port| port.name.as_str())),
-            }
-        })?;
+            })?;
         if let Some(expected) = expected
             && expected != output.msg_type
         {
@@ -365,11 +372,7 @@ fn feedback_delay_ns(seconds: f64) -> Option<i64> {
 }
 
 /// Checks the placement of nodes on hosts.
-fn check_hosts(
-    decls: Vec<(String, HostDecl)>,
-    nodes: &[Node],
-    source: &Source<'_>,
-) -> Result<Vec<Host>, GraphError> {
+fn check_hosts(decls: Vec<(String, HostDecl)>, nodes: &[Node], source: &Source<'_>) -> Result<Vec<Host>, GraphError> {
     let mut placed: HashMap<&str, &str> = HashMap::new();
     for (host, decl) in &decls {
         for (index, node) in decl.nodes.iter().enumerate() {

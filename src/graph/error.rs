@@ -376,9 +376,9 @@ impl GraphError {
             Self::NodeOnNoHost { .. } => K::NodeOnNoHost,
             Self::UnknownHostNode { .. } => K::UnknownHostNode,
             Self::BadReference { .. } => K::BadReference,
-            Self::UnknownVariable { .. }
-            | Self::UnclosedVariable { .. }
-            | Self::UnknownOverride { .. } => K::UnknownVariable,
+            Self::UnknownVariable { .. } | Self::UnclosedVariable { .. } | Self::UnknownOverride { .. } => {
+                K::UnknownVariable
+            }
             Self::Cycle { .. } => K::Cycle,
             Self::BadFeedbackDelay { .. } => K::BadFeedbackDelay,
         }

@@ -6,8 +6,8 @@ use std::fmt;
 use std::marker::PhantomData;
 
 use schemars::JsonSchema;
-use serde::de::{self, Deserializer, MapAccess, Visitor};
 use serde::Deserialize;
+use serde::de::{self, Deserializer, MapAccess, Visitor};
 
 /// A gprflow graph file: a pipeline of stages wired output to input, with optional
 /// placement on machines and a list of topics to record.
@@ -40,7 +40,7 @@ pub(crate) struct NodeDecl {
     /// Stage kind that this node runs (`gprflow stage --list` names them).
     pub stage: Option<String>,
     /// A user's executable that speaks the gprflow bus; it declares its `outputs` and accepts
-    /// any inputs. Relative paths are relative to the graph file.
+    /// any inputs. Kept as written: the launcher resolves relative paths.
     pub exec: Option<String>,
     /// Inputs by input-port name: `node/output`, or the long form with `from`.
     #[serde(default)]
@@ -96,8 +96,7 @@ impl<'de> Deserialize<'de> for InputDecl {
             }
 
             fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<InputDecl, A::Error> {
-                LongInputDecl::deserialize(de::value::MapAccessDeserializer::new(map))
-                    .map(InputDecl::Long)
+                LongInputDecl::deserialize(de::value::MapAccessDeserializer::new(map)).map(InputDecl::Long)
             }
         }
 

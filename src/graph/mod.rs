@@ -112,8 +112,9 @@ fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphErr
             line: location.line() as usize,
             column: location.column() as usize,
         });
+    let missing_field = matches!(error.without_snippet(), serde_saphyr::Error::SerdeMissingField { .. });
     let key_path = position
-        .and_then(|position| source.positions.path_at(position))
+        .and_then(|position| source.positions.path_at(position, missing_field))
         .map(|path| path.join("."))
         .unwrap_or_default();
     let message = serde_saphyr::DefaultMessageFormatter.format_message(error.without_snippet());

@@ -72,7 +72,9 @@ enum Frame {
         next_index: usize,
     },
     /// Inside a collection used as a mapping key (`? [a, b]: x`): skipped.
-    ComplexKey { depth: usize },
+    ComplexKey {
+        depth: usize,
+    },
 }
 
 /// What kind of YAML node an event starts.
@@ -80,7 +82,9 @@ enum NodeEvent<'e> {
     Scalar(&'e str),
     /// An alias: a leaf here, whatever it points to.
     Alias,
-    Collection { is_map: bool },
+    Collection {
+        is_map: bool,
+    },
 }
 
 fn position(marker: &Marker) -> Position {
@@ -132,17 +136,25 @@ impl Positions {
         self.nearest(path).map(|entry| entry.value)
     }
 
-    /// The path of the node at or last before `at`: turns a deserialiser's position into a
-    /// key path. Keys count as their node's start, so a position on a key names that key.
-    pub(crate) fn path_at(&self, at: Position) -> Option<&KeyPath> {
-        self.entries
+    /// The path of the key or value at exactly `at`: turns a deserialiser's position into a
+    /// key path. A block mapping starts where its first key does: `container` picks the
+    /// mapping (for "missing field" errors), else the key.
+    pub(crate) fn path_at(&self, at: Position, container: bool) -> Option<&KeyPath> {
+        let keys = self
+            .entries
             .iter()
-            .flat_map(|(path, entry)| {
-                entry.key.into_iter().chain([entry.value]).map(move |p| (p, path))
-            })
-            .filter(|(p, _)| *p <= at)
-            .max_by(|(pa, a), (pb, b)| pa.cmp(pb).then(a.len().cmp(&b.len())))
-            .map(|(_, path)| path)
+            .filter(|(_, entry)| entry.key == Some(at))
+            .map(|(path, _)| path);
+        let values = self
+            .entries
+            .iter()
+            .filter(|(_, entry)| entry.value == at)
+            .map(|(path, _)| path);
+        if container {
+            values.min_by_key(|path| path.len())
+        } else {
+            keys.chain(values).max_by_key(|path| path.len())
+        }
     }
 
     fn nearest(&self, path: &[String]) -> Option<&Entry> {
@@ -174,7 +186,11 @@ impl Walk {
                 *next_index += 1;
                 Some((child, None))
             }
-            Some(Frame::Map { path, seen, pending_key }) => match pending_key.take() {
+            Some(Frame::Map {
+                path,
+                seen,
+                pending_key,
+            }) => match pending_key.take() {
                 Some((key, key_at)) => {
                     let mut child = path.clone();
                     child.push(key);
@@ -208,7 +224,10 @@ impl Walk {
             },
         };
         if let Some((path, key)) = child {
-            self.positions.entries.entry(path.clone()).or_insert(Entry { key, value: at });
+            self.positions
+                .entries
+                .entry(path.clone())
+                .or_insert(Entry { key, value: at });
             if let NodeEvent::Collection { is_map } = node {
                 self.stack.push(if is_map {
                     Frame::Map {
@@ -217,10 +236,7 @@ impl Walk {
                         pending_key: None,
                     }
                 } else {
-                    Frame::Seq {
-                        path,
-                        next_index: 0,
-                    }
+                    Frame::Seq { path, next_index: 0 }
                 });
             }
         }

@@ -39,10 +39,13 @@ impl StageInfo for FakeStage {
         if !self.outputs_from_params {
             return Ok(self.outputs.clone());
         }
-        let channels = params.get("channels").and_then(Value::as_object).ok_or_else(|| ParamError {
-            path: vec!["channels".to_owned()],
-            message: "no channels".to_owned(),
-        })?;
+        let channels = params
+            .get("channels")
+            .and_then(Value::as_object)
+            .ok_or_else(|| ParamError {
+                path: vec!["channels".to_owned()],
+                message: "no channels".to_owned(),
+            })?;
         Ok(channels
             .iter()
             .map(|(name, msg_type)| PortSpec::new(name, msg_type.as_str().unwrap_or_default()))
@@ -58,14 +61,15 @@ impl StageInfo for FakeStage {
     }
 }
 
-/// Parameters of the fake `toy_source`, as the real one declares them.
+/// Parameters of the fake `toy_source`, as the real one (`stages/toy`) declares them.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 #[allow(dead_code)]
 struct SourceParams {
     count: Option<u64>,
-    rate_hz: Option<f64>,
     samples: Option<u32>,
+    period_s: Option<f64>,
+    start_ns: Option<i64>,
     seed: Option<u64>,
 }
 
@@ -83,10 +87,10 @@ struct GainParams {
 #[serde(deny_unknown_fields)]
 #[allow(dead_code)]
 struct RecordParams {
-    path: Option<String>,
+    path: String,
 }
 
-/// Parameters of the fake `replay` (`channels` stands in for the recording's channels).
+/// Parameters of the fake `replay`; `channels` stands in for the recording's channels.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 #[allow(dead_code)]
@@ -169,8 +173,10 @@ fn parse_text(text: &str) -> Result<Graph, GraphError> {
 }
 
 fn parse_with(text: &str, overrides: &[(&str, &str)]) -> Result<Graph, GraphError> {
-    let overrides: Vec<(String, String)> =
-        overrides.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned())).collect();
+    let overrides: Vec<(String, String)> = overrides
+        .iter()
+        .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+        .collect();
     parse(text, Path::new("t.yaml"), &overrides, &catalog())
 }
 
@@ -216,7 +222,11 @@ fn toy_graph_reads_in_full() {
 
     let gen_node = graph.node("gen").expect("gen");
     assert_eq!(gen_node.kind, NodeKind::Stage("toy_source".to_owned()));
-    assert_eq!(gen_node.params, json!({ "count": 100 }), "whole `${{count}}` becomes a number");
+    assert_eq!(
+        gen_node.params,
+        json!({ "count": 100 }),
+        "whole `${{count}}` becomes a number"
+    );
     assert_eq!(gen_node.outputs, [PortSpec::new("trace", TRACE)]);
     assert!(gen_node.inputs.is_empty());
 
@@ -233,12 +243,24 @@ fn toy_graph_reads_in_full() {
             latest_only: false,
         }]
     );
-    assert_eq!(graph.node("reg").expect("reg").params, json!({}), "absent params: empty object");
+    assert_eq!(
+        graph.node("reg").expect("reg").params,
+        json!({}),
+        "absent params: empty object"
+    );
     assert!(graph.node("nope").is_none());
 
     assert_eq!(graph.vars.get("count").map(String::as_str), Some("100"));
-    assert_eq!(graph.vars.get("recording").map(String::as_str), Some("recordings/toy.mcap"));
-    assert_eq!(graph.record, Some(RecordDecl { topics: vec!["*".to_owned()] }));
+    assert_eq!(
+        graph.vars.get("recording").map(String::as_str),
+        Some("recordings/toy.mcap")
+    );
+    assert_eq!(
+        graph.record,
+        Some(RecordDecl {
+            topics: vec!["*".to_owned()]
+        })
+    );
 }
 
 #[test]
@@ -248,8 +270,11 @@ fn topics_consumers_and_recording() {
     let expected = ["gen/trace", "gain/trace", "mine/trace", "reg/trace"].map(|t| (t.to_owned(), TRACE.to_owned()));
     assert_eq!(topics, expected);
 
-    let consumers: Vec<(&str, &str)> =
-        graph.consumers("gain", "trace").iter().map(|(n, i)| (n.name.as_str(), i.name.as_str())).collect();
+    let consumers: Vec<(&str, &str)> = graph
+        .consumers("gain", "trace")
+        .iter()
+        .map(|(n, i)| (n.name.as_str(), i.name.as_str()))
+        .collect();
     assert_eq!(consumers, [("mine", "trace"), ("reg", "trace")]);
     assert!(graph.consumers("gain", "nope").is_empty());
     assert!(graph.consumers("reg", "trace").is_empty());
@@ -337,7 +362,10 @@ fn long_form_inputs() {
     assert_eq!(reg.inputs[0].feedback_delay_ns, None);
     assert!(reg.inputs[0].latest_only);
 
-    let error = assert_kind(&TOY.replace("feedback_delay_s: 0.5", "feedback_delay: 0.5"), GraphErrorKind::Structure);
+    let error = assert_kind(
+        &TOY.replace("feedback_delay_s: 0.5", "feedback_delay: 0.5"),
+        GraphErrorKind::Structure,
+    );
     assert!(error.to_string().contains("feedback_delay"), "{error}");
     assert_kind(&TOY.replace("from: gain/trace, ", ""), GraphErrorKind::Structure);
 }
@@ -353,7 +381,9 @@ fn inputs_are_sorted_by_name() {
     assert_eq!(names, ["imu", "trace"]);
     assert_eq!(fuse.inputs[0].msg_type, IMU);
     // `imu` is optional.
-    graph_of(&with_nodes("  gen: { stage: toy_source }\n  fuse: { stage: fuse, inputs: { trace: gen/trace } }\n"));
+    graph_of(&with_nodes(
+        "  gen: { stage: toy_source }\n  fuse: { stage: fuse, inputs: { trace: gen/trace } }\n",
+    ));
 }
 
 #[test]
@@ -365,12 +395,18 @@ fn exec_nodes_declare_outputs_and_take_any_inputs() {
     ));
     let mine = graph.node("mine").expect("mine");
     assert_eq!(mine.kind, NodeKind::Exec("./my_stage --fast".to_owned()));
-    assert_eq!(mine.outputs, [PortSpec::new("z", "pkg/msg/Z"), PortSpec::new("a", TRACE)], "file order");
+    assert_eq!(
+        mine.outputs,
+        [PortSpec::new("z", "pkg/msg/Z"), PortSpec::new("a", TRACE)],
+        "file order"
+    );
     assert_eq!(mine.inputs[1].msg_type, IMU);
     assert_eq!(mine.params, json!({ "k": 1 }));
 
     // No outputs at all is fine for an exec node (a sink).
-    let sink = graph_of(&with_nodes("  gen: { stage: toy_source }\n  sink: { exec: ./sink, inputs: { x: gen/trace } }\n"));
+    let sink = graph_of(&with_nodes(
+        "  gen: { stage: toy_source }\n  sink: { exec: ./sink, inputs: { x: gen/trace } }\n",
+    ));
     assert!(sink.node("sink").expect("sink").outputs.is_empty());
 }
 
@@ -391,7 +427,10 @@ fn references_split_at_the_first_slash() {
          gain: { stage: toy_gain, inputs: { trace: replay/gen/trace } }\n",
     ));
     let input = &graph.node("gain").expect("gain").inputs[0];
-    assert_eq!((input.from_node.as_str(), input.from_output.as_str()), ("replay", "gen/trace"));
+    assert_eq!(
+        (input.from_node.as_str(), input.from_output.as_str()),
+        ("replay", "gen/trace")
+    );
     assert_eq!(graph.topics()[0].0, "replay/gen/trace");
 }
 
@@ -430,16 +469,30 @@ nodes:
 "#;
     let graph = parse_with(text, &[]).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(graph.node("gen").expect("gen").params, json!({ "count": 5 }));
-    assert_eq!(graph.node("rec").expect("rec").params, json!({ "path": "data/run.mcap" }));
+    assert_eq!(
+        graph.node("rec").expect("rec").params,
+        json!({ "path": "data/run.mcap" })
+    );
     let mine = graph.node("mine").expect("mine");
     assert_eq!(mine.kind, NodeKind::Exec("data/my_stage".to_owned()));
-    assert_eq!(mine.params, json!({ "list": [5, "n5"], "nested": { "f": true, "l": "run" } }));
+    assert_eq!(
+        mine.params,
+        json!({ "list": [5, "n5"], "nested": { "f": true, "l": "run" } })
+    );
 
-    let graph = parse_with(text, &[("count", "12"), ("dir", "/tmp/x"), ("label", "0x")]).unwrap_or_else(|e| panic!("{e}"));
+    let graph =
+        parse_with(text, &[("count", "12"), ("dir", "/tmp/x"), ("label", "0x")]).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(graph.vars.get("count").map(String::as_str), Some("12"));
     assert_eq!(graph.node("gen").expect("gen").params, json!({ "count": 12 }));
-    assert_eq!(graph.node("rec").expect("rec").params, json!({ "path": "/tmp/x/0x.mcap" }));
-    assert_eq!(graph.node("mine").expect("mine").params["nested"]["l"], json!("0x"), "not a number: a string");
+    assert_eq!(
+        graph.node("rec").expect("rec").params,
+        json!({ "path": "/tmp/x/0x.mcap" })
+    );
+    assert_eq!(
+        graph.node("mine").expect("mine").params["nested"]["l"],
+        json!("0x"),
+        "not a number: a string"
+    );
 
     // A value that is not a number stays a string, and the stage says so.
     let error = parse_with(text, &[("count", "many")]).err().expect("bad count");
@@ -448,7 +501,8 @@ nodes:
 
 #[test]
 fn unknown_variables_are_errors() {
-    let text = "name: v\ninputs: { count: \"5\" }\nnodes:\n  gen: { stage: toy_source, params: { count: \"${cuont}\" } }\n";
+    let text =
+        "name: v\ninputs: { count: \"5\" }\nnodes:\n  gen: { stage: toy_source, params: { count: \"${cuont}\" } }\n";
     let error = parse_with(text, &[]).err().expect("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert_eq!(
@@ -456,21 +510,28 @@ fn unknown_variables_are_errors() {
         "t.yaml:4:46: nodes.gen.params.count: unknown variable `cuont` (variables are: count); declare it under `inputs:`"
     );
 
-    let error = parse_with(&text.replace("cuont", "count"), &[("seed", "3")]).err().expect("error");
+    let error = parse_with(&text.replace("cuont", "count"), &[("seed", "3")])
+        .err()
+        .expect("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert_eq!(
         error.to_string(),
         "t.yaml:2:1: inputs: `--set seed=...` names no variable of this graph (variables are: count)"
     );
 
-    let error = parse_with(&text.replace("${cuont}", "${count"), &[]).err().expect("error");
+    let error = parse_with(&text.replace("${cuont}", "${count"), &[])
+        .err()
+        .expect("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert!(matches!(error, GraphError::UnclosedVariable { .. }), "{error}");
 
     let exec = "name: v\nnodes:\n  x: { exec: \"${bin}/x\" }\n";
     let error = parse_with(exec, &[]).err().expect("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
-    assert_eq!(error.location().and_then(|l| l.position), Some(Position { line: 3, column: 14 }));
+    assert_eq!(
+        error.location().and_then(|l| l.position),
+        Some(Position { line: 3, column: 14 })
+    );
     assert!(error.to_string().contains("(variables are: none)"), "{error}");
 }
 
@@ -478,10 +539,17 @@ fn unknown_variables_are_errors() {
 
 #[test]
 fn io_error() {
-    let error = load(Path::new("/nonexistent/graph.yaml"), &[], &catalog()).err().expect("error");
+    let error = load(Path::new("/nonexistent/graph.yaml"), &[], &catalog())
+        .err()
+        .expect("error");
     assert_eq!(error.kind(), GraphErrorKind::Io);
     assert!(error.location().is_none());
-    assert!(error.to_string().starts_with("/nonexistent/graph.yaml: cannot read graph file: "), "{error}");
+    assert!(
+        error
+            .to_string()
+            .starts_with("/nonexistent/graph.yaml: cannot read graph file: "),
+        "{error}"
+    );
 }
 
 #[test]
@@ -506,35 +574,86 @@ fn syntax_error() {
 
 #[test]
 fn structure_errors() {
-    let error = assert_kind(&TOY.replace("inputs: { trace: gen/trace }", "inptus: { trace: gen/trace }"), GraphErrorKind::Structure);
-    assert_eq!(error.location().map(|l| l.key_path.as_str()), Some("nodes.gain.inptus"), "{error}");
+    let error = assert_kind(
+        &TOY.replace("inputs: { trace: gen/trace }", "inptus: { trace: gen/trace }"),
+        GraphErrorKind::Structure,
+    );
+    assert_eq!(
+        error.location().map(|l| l.key_path.as_str()),
+        Some("nodes.gain.inptus"),
+        "{error}"
+    );
     assert!(error.to_string().contains("inptus"), "{error}");
 
     // Missing and wrongly typed fields of the format.
-    assert_kind("nodes: {}\n", GraphErrorKind::Structure);
+    let error = assert_kind("nodes: {}\n", GraphErrorKind::Structure);
+    assert_eq!(error.to_string(), "t.yaml:1:1: missing field `name`");
+    let error = assert_kind(
+        "name: t\nnodes:\n  gen:\n    stage: toy_source\n    inptus: {}\n",
+        GraphErrorKind::Structure,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:5:5: nodes.gen.inptus: unknown field `inptus`, expected one of stage, exec, inputs, outputs, params"
+    );
+    let error = assert_kind(
+        "name: t\nnodes:\n  gen:\n    exec: ./x\n    inputs: { a: { form: gen/x } }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:5:20: nodes.gen.inputs.a.form: unknown field `form`, expected one of from, feedback_delay_s, latest_only"
+    );
     assert_kind("name: t\n", GraphErrorKind::Structure);
     assert_kind("name: t\nnodes: [a, b]\n", GraphErrorKind::Structure);
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source, params: 5 }\n", GraphErrorKind::Structure);
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source }\nhosts: { a: { nodes: gen } }\n", GraphErrorKind::Structure);
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source }\nhosts: { a: { nodes: [gen], zenoh: { lisen: [] } } }\n", GraphErrorKind::Structure);
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source }\nrecord: { topic: [a] }\n", GraphErrorKind::Structure);
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source }\n---\nname: u\n", GraphErrorKind::Structure);
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source, params: 5 }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source }\nhosts: { a: { nodes: gen } }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source }\nhosts: { a: { nodes: [gen], zenoh: { lisen: [] } } }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source }\nrecord: { topic: [a] }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source }\n---\nname: u\n",
+        GraphErrorKind::Structure,
+    );
     assert_kind("", GraphErrorKind::Structure);
 
     // Exactly one of `stage` and `exec`; `outputs` only with `exec`.
-    let error = assert_kind("name: t\nnodes:\n  gen: { stage: toy_source, exec: ./x }\n", GraphErrorKind::Structure);
-    assert_eq!(error.to_string(), "t.yaml:3:29: nodes.gen.exec: a node has `stage:` or `exec:`, not both");
+    let error = assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source, exec: ./x }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:3:29: nodes.gen.exec: a node has `stage:` or `exec:`, not both"
+    );
     let error = assert_kind("name: t\nnodes:\n  gen: { params: {} }\n", GraphErrorKind::Structure);
     assert_eq!(
         error.to_string(),
         "t.yaml:3:3: nodes.gen: node `gen` needs `stage:` (a stage kind) or `exec:` (an executable)"
     );
-    assert_kind("name: t\nnodes:\n  gen: { stage: toy_source, outputs: { a: b } }\n", GraphErrorKind::Structure);
+    assert_kind(
+        "name: t\nnodes:\n  gen: { stage: toy_source, outputs: { a: b } }\n",
+        GraphErrorKind::Structure,
+    );
 }
 
 #[test]
 fn unknown_stage() {
-    let error = assert_kind(&with_nodes("  gen:\n    stage: toy_sauce\n"), GraphErrorKind::UnknownStage);
+    let error = assert_kind(
+        &with_nodes("  gen:\n    stage: toy_sauce\n"),
+        GraphErrorKind::UnknownStage,
+    );
     assert_eq!(
         error.to_string(),
         "t.yaml:4:12: nodes.gen.stage: unknown stage `toy_sauce` \
@@ -562,17 +681,28 @@ fn bad_param() {
     assert_eq!(at.position, Some(Position { line: 3, column: 3 }));
 
     // Outputs that depend on params fail the same way.
-    let error = assert_kind(&with_nodes("  rep: { stage: replay, params: { path: x.mcap } }\n"), GraphErrorKind::BadParam);
-    assert_eq!(error.location().map(|l| l.key_path.as_str()), Some("nodes.rep.params.channels"));
+    let error = assert_kind(
+        &with_nodes("  rep: { stage: replay, params: { path: x.mcap } }\n"),
+        GraphErrorKind::BadParam,
+    );
+    assert_eq!(
+        error.location().map(|l| l.key_path.as_str()),
+        Some("nodes.rep.params.channels")
+    );
 }
 
 #[test]
 fn dangling_input() {
     let text = with_nodes("  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: gen2/trace } }\n");
     let error = assert_kind(&text, GraphErrorKind::DanglingInput);
-    assert_eq!(error.to_string(), "t.yaml:4:45: nodes.gain.inputs.trace: no node `gen2` (nodes are: gen, gain)");
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:4:45: nodes.gain.inputs.trace: no node `gen2` (nodes are: gen, gain)"
+    );
 
-    let text = with_nodes("  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: { from: gen/trcae } } }\n");
+    let text = with_nodes(
+        "  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: { from: gen/trcae } } }\n",
+    );
     let error = assert_kind(&text, GraphErrorKind::DanglingInput);
     assert_eq!(
         error.to_string(),
@@ -582,7 +712,10 @@ fn dangling_input() {
 
 #[test]
 fn missing_input() {
-    let error = assert_kind(&with_nodes("  gen: { stage: toy_source }\n  gain: { stage: toy_gain }\n"), GraphErrorKind::MissingInput);
+    let error = assert_kind(
+        &with_nodes("  gen: { stage: toy_source }\n  gain: { stage: toy_gain }\n"),
+        GraphErrorKind::MissingInput,
+    );
     assert_eq!(
         error.to_string(),
         "t.yaml:4:3: nodes.gain.inputs: stage `toy_gain` needs input `trace` (gprflow_msgs/msg/Trace), which is not wired"
@@ -591,20 +724,28 @@ fn missing_input() {
         &with_nodes("  imu: { stage: imu_source }\n  fuse: { stage: fuse, inputs: { imu: imu/imu } }\n"),
         GraphErrorKind::MissingInput,
     );
-    assert_eq!(error.location().and_then(|l| l.position), Some(Position { line: 4, column: 24 }));
+    assert_eq!(
+        error.location().and_then(|l| l.position),
+        Some(Position { line: 4, column: 24 })
+    );
 }
 
 #[test]
 fn unknown_input() {
     let error = assert_kind(
-        &with_nodes("  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: gen/trace, trcae: gen/trace } }\n"),
+        &with_nodes(
+            "  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: gen/trace, trcae: gen/trace } }\n",
+        ),
         GraphErrorKind::UnknownInput,
     );
     assert_eq!(
         error.to_string(),
         "t.yaml:4:56: nodes.gain.inputs.trcae: stage `toy_gain` has no input `trcae` (its inputs are: trace)"
     );
-    assert_kind(&with_nodes("  gen: { stage: toy_source, inputs: { x: gen/trace } }\n"), GraphErrorKind::UnknownInput);
+    assert_kind(
+        &with_nodes("  gen: { stage: toy_source, inputs: { x: gen/trace } }\n"),
+        GraphErrorKind::UnknownInput,
+    );
 }
 
 #[test]
@@ -621,18 +762,36 @@ fn type_mismatch() {
 
 #[test]
 fn duplicate_names() {
-    let error = assert_kind(&with_nodes("  gen: { stage: toy_source }\n  gen: { stage: toy_source }\n"), GraphErrorKind::DuplicateName);
-    assert_eq!(error.to_string(), "t.yaml:4:3: nodes.gen: duplicate key `gen` (first at line 3, column 3)");
+    let error = assert_kind(
+        &with_nodes("  gen: { stage: toy_source }\n  gen: { stage: toy_source }\n"),
+        GraphErrorKind::DuplicateName,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:4:3: nodes.gen: duplicate key `gen` (first at line 3, column 3)"
+    );
 
     // Anywhere in the file, flow style included.
-    let error = assert_kind(&TOY.replace("gain: 2.0", "gain: 2.0, gain: 3.0"), GraphErrorKind::DuplicateName);
-    assert_eq!(error.location().map(|l| l.key_path.as_str()), Some("nodes.gain.params.gain"));
+    let error = assert_kind(
+        &TOY.replace("gain: 2.0", "gain: 2.0, gain: 3.0"),
+        GraphErrorKind::DuplicateName,
+    );
+    assert_eq!(
+        error.location().map(|l| l.key_path.as_str()),
+        Some("nodes.gain.params.gain")
+    );
     assert_kind("name: a\nname: b\nnodes: {}\n", GraphErrorKind::DuplicateName);
     assert_kind(&TOY.replace("base:  {", "robot:  {"), GraphErrorKind::DuplicateName);
 
     // A node on two hosts.
-    let error = assert_kind(&TOY.replace("[mine, reg]", "[mine, reg, gen]"), GraphErrorKind::DuplicateName);
-    assert_eq!(error.to_string(), "t.yaml:10:31: hosts.base.nodes.2: node `gen` is already on host `robot`; a node runs on one host");
+    let error = assert_kind(
+        &TOY.replace("[mine, reg]", "[mine, reg, gen]"),
+        GraphErrorKind::DuplicateName,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:10:31: hosts.base.nodes.2: node `gen` is already on host `robot`; a node runs on one host"
+    );
 }
 
 #[test]
@@ -642,12 +801,18 @@ fn node_on_no_host() {
         error.to_string(),
         "t.yaml:7:3: nodes.reg: node `reg` is on no host (hosts are: robot, base); with `hosts:` every node needs one"
     );
-    assert_kind(&format!("{TOY}").replace("hosts:\n  robot", "hosts: {}\nxhosts:\n  robot"), GraphErrorKind::Structure);
+    assert_kind(
+        &format!("{TOY}").replace("hosts:\n  robot", "hosts: {}\nxhosts:\n  robot"),
+        GraphErrorKind::Structure,
+    );
 }
 
 #[test]
 fn unknown_host_node() {
-    let error = assert_kind(&TOY.replace("[mine, reg]", "[mine, reg, gian]"), GraphErrorKind::UnknownHostNode);
+    let error = assert_kind(
+        &TOY.replace("[mine, reg]", "[mine, reg, gian]"),
+        GraphErrorKind::UnknownHostNode,
+    );
     assert_eq!(
         error.to_string(),
         "t.yaml:10:31: hosts.base.nodes.2: host `base` lists `gian`, which is not a node (nodes are: gen, gain, mine, reg)"
@@ -661,7 +826,11 @@ fn bad_reference() {
             "  gen: {{ stage: toy_source }}\n  gain: {{ stage: toy_gain, inputs: {{ trace: {reference} }} }}\n"
         ));
         let error = assert_kind(&text, GraphErrorKind::BadReference);
-        assert_eq!(error.location().and_then(|l| l.position), Some(Position { line: 4, column: 45 }), "{error}");
+        assert_eq!(
+            error.location().and_then(|l| l.position),
+            Some(Position { line: 4, column: 45 }),
+            "{error}"
+        );
     }
 }
 
@@ -673,7 +842,12 @@ fn cycles_without_feedback() {
          est: { stage: toy_gain, inputs: { trace: mix/trace } }\n",
     );
     let error = assert_kind(&text, GraphErrorKind::Cycle);
-    assert!(error.to_string().starts_with("t.yaml:5:44: nodes.est.inputs.trace: cycle without a feedback input: mix -> est -> mix"), "{error}");
+    assert!(
+        error
+            .to_string()
+            .starts_with("t.yaml:5:44: nodes.est.inputs.trace: cycle without a feedback input: mix -> est -> mix"),
+        "{error}"
+    );
 
     let self_loop = with_nodes("  gain: { stage: toy_gain, inputs: { trace: gain/trace } }\n");
     let error = assert_kind(&self_loop, GraphErrorKind::Cycle);
@@ -685,7 +859,12 @@ fn cycles_without_feedback() {
          c: { stage: toy_gain, inputs: { trace: { from: b/trace, latest_only: true } } }\n",
     );
     let error = assert_kind(&three, GraphErrorKind::Cycle);
-    assert!(error.to_string().contains(": cycle without a feedback input: c -> a -> b -> c;"), "{error}");
+    assert!(
+        error
+            .to_string()
+            .contains("t.yaml:4:42: nodes.b.inputs.trace: cycle without a feedback input: a -> b -> c -> a;"),
+        "{error}"
+    );
 }
 
 #[test]
@@ -693,8 +872,15 @@ fn bad_feedback_delay() {
     for delay in ["0", "-0.5", ".nan", ".inf", "1e-12", "1e300"] {
         let text = TOY.replace("feedback_delay_s: 0.5", &format!("feedback_delay_s: {delay}"));
         let error = assert_kind(&text, GraphErrorKind::BadFeedbackDelay);
-        assert_eq!(error.location().map(|l| l.key_path.as_str()), Some("nodes.reg.inputs.trace.feedback_delay_s"));
-        assert_eq!(error.location().and_then(|l| l.position), Some(Position { line: 7, column: 85 }), "{error}");
+        assert_eq!(
+            error.location().map(|l| l.key_path.as_str()),
+            Some("nodes.reg.inputs.trace.feedback_delay_s")
+        );
+        assert_eq!(
+            error.location().and_then(|l| l.position),
+            Some(Position { line: 7, column: 85 }),
+            "{error}"
+        );
     }
     let tiny = graph_of(&TOY.replace("feedback_delay_s: 0.5", "feedback_delay_s: 1e-9"));
     assert_eq!(tiny.node("reg").expect("reg").inputs[0].feedback_delay_ns, Some(1));
@@ -720,7 +906,11 @@ fn truncated_files_never_panic() {
     }
     let deep = "[".repeat(100_000);
     assert!(parse_text(&deep).is_err());
-    let deep_map = format!("name: t\nnodes: {{ a: {{ stage: record, params: {}1{} }} }}\n", "{ x: ".repeat(10_000), " }".repeat(10_000));
+    let deep_map = format!(
+        "name: t\nnodes: {{ a: {{ stage: record, params: {}1{} }} }}\n",
+        "{ x: ".repeat(10_000),
+        " }".repeat(10_000)
+    );
     assert!(parse_text(&deep_map).is_err());
 }
 
@@ -825,7 +1015,10 @@ fn fixtures_match_their_expectations() {
                 Ok(_) => panic!("{name}: expected {expected}, got a valid graph"),
                 Err(error) => {
                     assert_eq!(error.kind(), expected, "{name}: {error}");
-                    assert!(error.location().and_then(|l| l.position).is_some(), "{name}: no position: {error}");
+                    assert!(
+                        error.location().and_then(|l| l.position).is_some(),
+                        "{name}: no position: {error}"
+                    );
                 }
             }
         }

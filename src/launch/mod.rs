@@ -62,6 +62,8 @@ pub struct LaunchOptions {
     pub handshake_timeout: Duration,
     /// How long stopping processes get after SIGTERM before SIGKILL.
     pub stop_grace: Duration,
+    /// Log filter handed to built-in stages (`--log`).
+    pub log_filter: Option<String>,
 }
 
 impl LaunchOptions {
@@ -74,6 +76,7 @@ impl LaunchOptions {
             buffer: 16,
             handshake_timeout: Duration::from_secs(30),
             stop_grace: Duration::from_secs(5),
+            log_filter: None,
         }
     }
 }
@@ -110,16 +113,23 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
     let prefix = format!("gf{run_id}_");
     let on_host = |node: &str| match &opts.host {
         None => true,
-        Some(h) => graph.hosts.iter().any(|host| &host.name == h && host.nodes.iter().any(|n| n == node)),
+        Some(h) => graph
+            .hosts
+            .iter()
+            .any(|host| &host.name == h && host.nodes.iter().any(|n| n == node)),
     };
     if let Some(h) = &opts.host
         && !graph.hosts.iter().any(|host| &host.name == h)
     {
         let known: Vec<&str> = graph.hosts.iter().map(|h| h.name.as_str()).collect();
-        return Err(LaunchError::Plan(format!("{}: no host `{h}` (hosts: {})", graph.file.display(), known.join(", "))));
+        return Err(LaunchError::Plan(format!(
+            "{}: no host `{h}` (hosts: {})",
+            graph.file.display(),
+            known.join(", ")
+        )));
     }
-    let recording = opts.record.is_some() || graph.record.is_some();
-    let record_path = opts.record.clone();
+    // `record:` in the graph selects topics; recording happens when a file is given
+    let recording = opts.record.is_some();
     let records = |topic: &str| recording && (graph.record.is_none() || graph.record_matches(topic));
 
     let mut nodes = Vec::new();
@@ -150,9 +160,14 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
             let topic = format!("{}/{}", node.name, port.name);
             let consumers = graph.consumers(&node.name, &port.name);
             let record = records(&topic);
-            let required = consumers.iter().filter(|(_, i)| i.feedback_delay_ns.is_none()).count() + usize::from(record);
+            let required =
+                consumers.iter().filter(|(_, i)| i.feedback_delay_ns.is_none()).count() + usize::from(record);
             if record {
-                recorded.push((topic.clone(), port.msg_type.clone(), topic_latest_only(graph, &node.name, &port.name)));
+                recorded.push((
+                    topic.clone(),
+                    port.msg_type.clone(),
+                    topic_latest_only(graph, &node.name, &port.name),
+                ));
             }
             outputs.push(OutputBinding {
                 name: port.name.clone(),
@@ -183,9 +198,7 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
         ));
     }
 
-    if recording && !recorded.is_empty() {
-        let path = record_path
-            .ok_or_else(|| LaunchError::Plan(format!("{}: the graph has `record:`; give the file with --record", graph.file.display())))?;
+    if let Some(path) = opts.record.as_ref().filter(|_| !recorded.is_empty()) {
         let nodes_json = serde_json::to_string_pretty(
             &graph
                 .nodes
@@ -353,16 +366,30 @@ enum Line {
     Progress(usize, u64, u64),
 }
 
-fn spawn(spec: &NodeSpec, exec: Option<&str>, spec_file: &Path, opts: &LaunchOptions, index: usize, lines: SyncSender<Line>) -> Result<Running, LaunchError> {
+fn spawn(
+    spec: &NodeSpec,
+    exec: Option<&str>,
+    spec_file: &Path,
+    opts: &LaunchOptions,
+    index: usize,
+    lines: SyncSender<Line>,
+) -> Result<Running, LaunchError> {
     let mut cmd = match exec {
         Some(e) => Command::new(e),
         None => {
             let mut c = Command::new(&opts.exe);
             c.arg("stage").arg(&spec.stage);
+            if let Some(filter) = &opts.log_filter {
+                c.arg("--log").arg(filter);
+            }
             c
         }
     };
-    cmd.arg("--spec").arg(spec_file).stdin(Stdio::null()).stdout(Stdio::inherit()).stderr(Stdio::piped());
+    cmd.arg("--spec")
+        .arg(spec_file)
+        .stdin(Stdio::null())
+        .stdout(Stdio::inherit())
+        .stderr(Stdio::piped());
     // SAFETY: the closure runs between fork and exec and only calls prctl, which is
     // async-signal-safe.
     unsafe {
@@ -402,7 +429,12 @@ fn spawn(spec: &NodeSpec, exec: Option<&str>, spec_file: &Path, opts: &LaunchOpt
     })
 }
 
-fn forward_stderr(stderr: std::process::ChildStderr, index: usize, tail: &Mutex<VecDeque<String>>, lines: &SyncSender<Line>) {
+fn forward_stderr(
+    stderr: std::process::ChildStderr,
+    index: usize,
+    tail: &Mutex<VecDeque<String>>,
+    lines: &SyncSender<Line>,
+) {
     for line in BufReader::new(stderr).lines() {
         let Ok(line) = line else { break };
         if let Some(rest) = line.strip_prefix(PROGRESS_TAG) {
@@ -432,7 +464,10 @@ fn signal(child: &Child, sig: nix::sys::signal::Signal) {
 fn drain(rx: &Receiver<Line>, running: &[Running], observer: &mut dyn LaunchObserver) {
     while let Ok(line) = rx.try_recv() {
         match line {
-            Line::Log(i, l) => observer.event(LaunchEvent::Log { node: &running[i].node, line: &l }),
+            Line::Log(i, l) => observer.event(LaunchEvent::Log {
+                node: &running[i].node,
+                line: &l,
+            }),
             Line::Progress(i, done, total) => observer.event(LaunchEvent::Progress {
                 node: &running[i].node,
                 done,
@@ -447,7 +482,12 @@ fn drain(rx: &Receiver<Line>, running: &[Running], observer: &mut dyn LaunchObse
 /// # Errors
 /// [`LaunchError::Io`] when a spec file cannot be written or a process cannot start (the
 /// ones already started are stopped first).
-pub fn launch(plan: &Plan, opts: &LaunchOptions, stop: &Arc<AtomicBool>, observer: &mut dyn LaunchObserver) -> Result<LaunchReport, LaunchError> {
+pub fn launch(
+    plan: &Plan,
+    opts: &LaunchOptions,
+    stop: &Arc<AtomicBool>,
+    observer: &mut dyn LaunchObserver,
+) -> Result<LaunchReport, LaunchError> {
     let started = Instant::now();
     let dir = std::env::temp_dir().join(format!("gprflow-{}", plan.run_id));
     std::fs::create_dir_all(&dir).map_err(|source| LaunchError::Io {
@@ -505,7 +545,10 @@ pub fn launch(plan: &Plan, opts: &LaunchOptions, stop: &Arc<AtomicBool>, observe
             if let Ok(Some(status)) = r.child.try_wait() {
                 r.status = Some(status);
                 let outcome = describe_status(status);
-                observer.event(LaunchEvent::Exited { node: &r.node, status: &outcome });
+                observer.event(LaunchEvent::Exited {
+                    node: &r.node,
+                    status: &outcome,
+                });
                 if !status.success() && stopping_since.is_none() && first_failure.is_none() {
                     first_failure = Some(r.node.clone());
                 }
@@ -555,7 +598,13 @@ pub fn launch(plan: &Plan, opts: &LaunchOptions, stop: &Arc<AtomicBool>, observe
                 node: r.node.clone(),
                 code: r.status.and_then(|s| s.code()),
                 signal: r.status.and_then(|s| s.signal()),
-                stderr_tail: r.tail.lock().unwrap_or_else(PoisonError::into_inner).iter().cloned().collect(),
+                stderr_tail: r
+                    .tail
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .iter()
+                    .cloned()
+                    .collect(),
                 stopped_by_launcher: r.stopped_by_launcher,
             })
             .collect(),
@@ -603,7 +652,9 @@ fn collect_with_prefix(dir: &Path, prefix: &str, out: &mut Vec<PathBuf>, depth: 
 
 /// Removes what processes of the run with `prefix` left behind: first through iceoryx2's
 /// own dead-node cleanup, then any file still carrying the run's prefix (the prefix is
-/// unique to the run, so nothing else is touched). Returns what had to be removed.
+/// unique to the run, so nothing else is touched). iceoryx2 keeps one global management
+/// segment per prefix on purpose; it is removed silently. Returns what else had to be
+/// removed: resources of processes that did not exit cleanly.
 pub fn cleanup_run(prefix: &str) -> Vec<String> {
     let stop = Arc::new(AtomicBool::new(false));
     if let Ok(t) = crate::bus::iox::IoxTransport::new("gprflow_cleanup", prefix, stop) {
@@ -616,7 +667,12 @@ pub fn cleanup_run(prefix: &str) -> Vec<String> {
         } else {
             std::fs::remove_file(&path)
         };
-        if gone.is_ok() {
+        // a node's own directory (named by node id) is left empty: remove it too
+        if let Some(parent) = path.parent().filter(|p| p.parent().is_some_and(|g| g.ends_with("nodes"))) {
+            let _ = std::fs::remove_dir(parent);
+        }
+        let expected = path.extension().is_some_and(|e| e == "global_mgmt");
+        if gone.is_ok() && !expected {
             removed.push(path.display().to_string());
         }
     }

@@ -85,10 +85,7 @@ impl<'a> CdrWriter<'a> {
         for (slot, b) in buf.iter_mut().zip(CDR_LE_HEADER) {
             slot.write(b);
         }
-        Ok(Self {
-            buf,
-            pos: HEADER_LEN,
-        })
+        Ok(Self { buf, pos: HEADER_LEN })
     }
 
     /// Bytes written so far, header included.

@@ -2,9 +2,8 @@
 //! handle topics whose type is known only at run time (inspect, diff, the recorder).
 
 use super::{
-    CdrDecode, Image, Imu, LineMap, LineObservation, MapFix, Message, MsgError, Odometry,
-    PoseStamped, Registration, StateEstimate, Submap, Sweep, Trace, Trajectory, WheelOdometry,
-    decode,
+    CdrDecode, Image, Imu, LineMap, LineObservation, MapFix, Message, MsgError, Odometry, PoseStamped, Registration,
+    StateEstimate, Submap, Sweep, Trace, Trajectory, WheelOdometry, decode,
 };
 
 /// A message type known to gprflow.
@@ -31,9 +30,7 @@ impl MessageType {
     }
 }
 
-fn to_json<'de, M: CdrDecode<'de> + serde::Serialize>(
-    payload: &'de [u8],
-) -> Result<serde_json::Value, MsgError> {
+fn to_json<'de, M: CdrDecode<'de> + serde::Serialize>(payload: &'de [u8]) -> Result<serde_json::Value, MsgError> {
     let msg: M = decode(payload)?;
     serde_json::to_value(&msg).map_err(|e| MsgError::Invalid {
         field: "",

@@ -10,8 +10,17 @@ fn header() -> impl Strategy<Value = Header> {
 
 fn pose() -> impl Strategy<Value = Pose> {
     prop::array::uniform7(-1e6f64..1e6).prop_map(|v| Pose {
-        position: Point { x: v[0], y: v[1], z: v[2] },
-        orientation: Quaternion { x: v[3], y: v[4], z: v[5], w: v[6] },
+        position: Point {
+            x: v[0],
+            y: v[1],
+            z: v[2],
+        },
+        orientation: Quaternion {
+            x: v[3],
+            y: v[4],
+            z: v[5],
+            w: v[6],
+        },
     })
 }
 
@@ -97,7 +106,10 @@ proptest! {
 #[test]
 fn imu_bytes_match_the_ros2_layout() {
     // Hand-computed: header (8 + 4 + "imu\0") then orientation at body offset 16.
-    let imu = Imu { header: Header::new(1_500_000_000, "imu"), ..Imu::default() };
+    let imu = Imu {
+        header: Header::new(1_500_000_000, "imu"),
+        ..Imu::default()
+    };
     let bytes = encode(&imu);
     assert_eq!(&bytes[..4], &CDR_LE_HEADER);
     assert_eq!(&bytes[4..8], &1i32.to_le_bytes()); // sec
@@ -111,7 +123,9 @@ fn imu_bytes_match_the_ros2_layout() {
 #[test]
 fn schema_text_lists_dependencies_once() {
     let text = Imu::schema_text();
-    assert!(text.starts_with("std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"));
+    assert!(text.starts_with(
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+    ));
     assert_eq!(text.matches("MSG: std_msgs/Header").count(), 1);
     assert_eq!(text.matches("MSG: builtin_interfaces/Time").count(), 1);
     assert_eq!(text.matches("MSG: geometry_msgs/Vector3").count(), 1);
@@ -122,11 +136,17 @@ fn schema_text_lists_dependencies_once() {
 
 #[test]
 fn large_arrays_are_borrowed_in_place() {
-    let t = Trace { samples_f32: Cow::Owned(vec![1.0; 1000]), ..Trace::default() };
+    let t = Trace {
+        samples_f32: Cow::Owned(vec![1.0; 1000]),
+        ..Trace::default()
+    };
     let bytes = encode(&t);
     // Vec<u8> from the global allocator is at least 8-byte aligned.
     let back: Trace<'_> = decode(&bytes).expect("decodes");
-    assert!(matches!(back.samples_f32, Cow::Borrowed(_)), "expected a zero-copy view");
+    assert!(
+        matches!(back.samples_f32, Cow::Borrowed(_)),
+        "expected a zero-copy view"
+    );
     // Misaligned buffer: still decodes, by copying.
     let mut shifted = vec![0u8; bytes.len() + 1];
     shifted[1..].copy_from_slice(&bytes);
@@ -136,13 +156,25 @@ fn large_arrays_are_borrowed_in_place() {
 
 #[test]
 fn corrupt_length_is_rejected_without_allocating() {
-    let t = Trace { samples_i16: Cow::Owned(vec![3; 4]), ..Trace::default() };
+    let t = Trace {
+        samples_i16: Cow::Owned(vec![3; 4]),
+        ..Trace::default()
+    };
     let mut bytes = encode(&t);
     // the samples_i16 length prefix sits right before the samples; make it huge
     let pos = bytes.len() - 4 - 4 - 8 - 4; // f32 len, i32 len, 4 samples (8 bytes), i16 len
     bytes[pos..pos + 4].copy_from_slice(&u32::MAX.to_le_bytes());
     let err = decode::<Trace<'_>>(&bytes).expect_err("must fail");
-    assert!(matches!(err, MsgError::Length { field: "gprflow_msgs/msg/Trace.samples_i16", .. }), "{err}");
+    assert!(
+        matches!(
+            err,
+            MsgError::Length {
+                field: "gprflow_msgs/msg/Trace.samples_i16",
+                ..
+            }
+        ),
+        "{err}"
+    );
 }
 
 #[test]

@@ -10,7 +10,7 @@
 
 mod stages;
 
-pub use stages::{RecordParams, RecordStage, ReplayParams, ReplayStage, Pace};
+pub use stages::{Pace, RecordParams, RecordStage, ReplayParams, ReplayStage};
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -118,7 +118,9 @@ pub struct Recorder {
 
 impl std::fmt::Debug for Recorder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Recorder").field("path", &self.path).finish_non_exhaustive()
+        f.debug_struct("Recorder")
+            .field("path", &self.path)
+            .finish_non_exhaustive()
     }
 }
 
@@ -337,10 +339,12 @@ impl Recording {
         use mcap::records::Record;
         let mut extras = Extras::default();
         let mut channels = mcap::read::ChannelAccumulator::default();
-        let records = match mcap::read::ChunkFlattener::new_with_options(&self.bytes, mcap::read::Options::IgnoreEndMagic.into()) {
-            Ok(r) => r,
-            Err(e) => return (extras, Some(e.to_string())),
-        };
+        let records =
+            match mcap::read::ChunkFlattener::new_with_options(&self.bytes, mcap::read::Options::IgnoreEndMagic.into())
+            {
+                Ok(r) => r,
+                Err(e) => return (extras, Some(e.to_string())),
+            };
         let mut stopped = None;
         let mut count = 0u64;
         for record in records {
@@ -366,7 +370,10 @@ impl Recording {
                 }
                 Record::Message { header, data } => {
                     let Some(ch) = channels.get(header.channel_id) else {
-                        stopped = Some(format!("after {count} messages: message on unknown channel {}", header.channel_id));
+                        stopped = Some(format!(
+                            "after {count} messages: message on unknown channel {}",
+                            header.channel_id
+                        ));
                         break;
                     };
                     let msg_type = ch.schema.as_ref().map_or("", |s| s.name.as_str());
@@ -390,7 +397,9 @@ impl Recording {
             }
         }
         if stopped.is_none() && !self.bytes.ends_with(mcap::MAGIC) {
-            stopped = Some(format!("after {count} messages: the file has no footer (cut off mid-write?)"));
+            stopped = Some(format!(
+                "after {count} messages: the file has no footer (cut off mid-write?)"
+            ));
         }
         (extras, stopped)
     }
@@ -404,7 +413,12 @@ impl Recording {
             chans.sort_by_key(|c| c.id);
             return chans
                 .into_iter()
-                .map(|c| (c.topic.clone(), c.schema.as_ref().map_or(String::new(), |s| s.name.clone())))
+                .map(|c| {
+                    (
+                        c.topic.clone(),
+                        c.schema.as_ref().map_or(String::new(), |s| s.name.clone()),
+                    )
+                })
                 .collect();
         }
         self.scan(|m| {
@@ -499,7 +513,11 @@ pub fn inspect(rec: &Recording) -> Inspection {
     });
     for t in &mut topics {
         let span = t.last_ns.saturating_sub(t.first_ns) as f64 * 1e-9;
-        t.rate_hz = if span > 0.0 { (t.count.saturating_sub(1)) as f64 / span } else { 0.0 };
+        t.rate_hz = if span > 0.0 {
+            (t.count.saturating_sub(1)) as f64 / span
+        } else {
+            0.0
+        };
     }
     Inspection {
         path: rec.path.display().to_string(),

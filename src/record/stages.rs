@@ -58,7 +58,12 @@ impl Stage for RecordStage {
 
     fn on_message(&mut self, input: Input<'_>, _out: &mut Outputs) -> Result<(), StageError> {
         self.recorder
-            .write(self.channels[input.id.0], input.seq(), input.stamp_ns(), input.payload())
+            .write(
+                self.channels[input.id.0],
+                input.seq(),
+                input.stamp_ns(),
+                input.payload(),
+            )
             .map_err(StageError::failed)
     }
 
@@ -108,7 +113,9 @@ pub fn glob_match(pattern: &str, text: &str) -> bool {
     match pattern.split_once('*') {
         None => pattern == text,
         Some((head, rest)) => {
-            let Some(tail) = text.strip_prefix(head) else { return false };
+            let Some(tail) = text.strip_prefix(head) else {
+                return false;
+            };
             (0..=tail.len()).any(|i| tail.is_char_boundary(i) && glob_match(rest, &tail[i..]))
         }
     }
@@ -164,7 +171,11 @@ impl Stage for ReplayStage {
             }
         });
         if let Some(at) = stopped {
-            tracing::warn!("{}: read stopped early ({at}); replaying the {} messages before it", params.path, messages.len());
+            tracing::warn!(
+                "{}: read stopped early ({at}); replaying the {} messages before it",
+                params.path,
+                messages.len()
+            );
         }
         Ok(Self {
             messages,

@@ -128,14 +128,18 @@ pub struct NodeSpec {
 impl InputBinding {
     /// Topic settings of this input.
     pub fn topic_config(&self) -> TopicConfig {
-        TopicConfig::new(&self.topic).buffer(self.buffer).latest_only(self.latest_only)
+        TopicConfig::new(&self.topic)
+            .buffer(self.buffer)
+            .latest_only(self.latest_only)
     }
 }
 
 impl OutputBinding {
     /// Topic settings of this output.
     pub fn topic_config(&self) -> TopicConfig {
-        TopicConfig::new(&self.topic).buffer(self.buffer).latest_only(self.latest_only)
+        TopicConfig::new(&self.topic)
+            .buffer(self.buffer)
+            .latest_only(self.latest_only)
     }
 }
 
@@ -207,14 +211,22 @@ impl Ports {
     /// # Errors
     /// [`StageError::Port`] when missing or of another type.
     pub fn output<M: Message>(&self, name: &str) -> Result<Output<M>, StageError> {
-        let index = self.outputs.iter().position(|o| o.name == name).ok_or_else(|| StageError::Port {
-            port: name.to_owned(),
-            reason: "not an output of this node".to_owned(),
-        })?;
+        let index = self
+            .outputs
+            .iter()
+            .position(|o| o.name == name)
+            .ok_or_else(|| StageError::Port {
+                port: name.to_owned(),
+                reason: "not an output of this node".to_owned(),
+            })?;
         if self.outputs[index].msg_type != M::TYPE_NAME {
             return Err(StageError::Port {
                 port: name.to_owned(),
-                reason: format!("wired as {}, the stage sends {}", self.outputs[index].msg_type, M::TYPE_NAME),
+                reason: format!(
+                    "wired as {}, the stage sends {}",
+                    self.outputs[index].msg_type,
+                    M::TYPE_NAME
+                ),
             });
         }
         Ok(Output {
@@ -401,7 +413,11 @@ fn next_step(inputs: &[InputState]) -> Step {
     let candidate = inputs
         .iter()
         .enumerate()
-        .filter_map(|(i, s)| s.head.as_ref().map(|f| ((s.effective(f.header.stamp_ns), s.rank(i)), i)))
+        .filter_map(|(i, s)| {
+            s.head
+                .as_ref()
+                .map(|f| ((s.effective(f.header.stamp_ns), s.rank(i)), i))
+        })
         .min();
     let primary_done = inputs
         .iter()
@@ -449,7 +465,11 @@ fn pending_watermark(inputs: &[InputState]) -> i64 {
 ///
 /// # Errors
 /// Parameter, port, bus and stage errors.
-pub fn run_node<S: Stage>(spec: &NodeSpec, transport: &dyn Transport, stop: &Arc<AtomicBool>) -> Result<RunReport, StageError> {
+pub fn run_node<S: Stage>(
+    spec: &NodeSpec,
+    transport: &dyn Transport,
+    stop: &Arc<AtomicBool>,
+) -> Result<RunReport, StageError> {
     let started = Instant::now();
     let params = parse_params::<S::Params>(&spec.params)?;
     let stopped = || stop.load(Ordering::Relaxed);
@@ -466,7 +486,11 @@ pub fn run_node<S: Stage>(spec: &NodeSpec, transport: &dyn Transport, stop: &Arc
     }
     let mut outboxes = Vec::with_capacity(spec.outputs.len());
     for b in &spec.outputs {
-        outboxes.push(Outbox::new(transport.publisher(&b.topic_config())?, &b.msg_type, b.required_subscribers));
+        outboxes.push(Outbox::new(
+            transport.publisher(&b.topic_config())?,
+            &b.msg_type,
+            b.required_subscribers,
+        ));
     }
     let handshake = Duration::from_millis(spec.handshake_timeout_ms);
     for s in &mut inputs {
@@ -535,14 +559,21 @@ pub fn run_node<S: Stage>(spec: &NodeSpec, transport: &dyn Transport, stop: &Arc
 
     let report = RunReport {
         node: spec.node.clone(),
-        received: inputs.iter().map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().received)).collect(),
+        received: inputs
+            .iter()
+            .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().received))
+            .collect(),
         dropped: inputs
             .iter()
             .filter(|s| s.inbox.stats().dropped > 0)
             .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().dropped))
             .collect(),
         sent: out.outboxes.iter().map(|o| (o.topic().to_owned(), o.sent())).collect(),
-        callback_us: [latency.value_at_quantile(0.5), latency.value_at_quantile(0.99), latency.max()],
+        callback_us: [
+            latency.value_at_quantile(0.5),
+            latency.value_at_quantile(0.99),
+            latency.max(),
+        ],
         wall_s: started.elapsed().as_secs_f64(),
         interrupted,
     };
@@ -561,3 +592,5 @@ pub fn run_node<S: Stage>(spec: &NodeSpec, transport: &dyn Transport, stop: &Arc
     Ok(report)
 }
 
+#[cfg(test)]
+mod tests;

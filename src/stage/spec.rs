@@ -90,9 +90,7 @@ pub trait StageInfo: Send + Sync {
 ///
 /// # Errors
 /// The deserialisation error.
-pub fn parse_params<P: serde::de::DeserializeOwned>(
-    params: &serde_json::Value,
-) -> Result<P, ParamError> {
+pub fn parse_params<P: serde::de::DeserializeOwned>(params: &serde_json::Value) -> Result<P, ParamError> {
     let value = if params.is_null() {
         serde_json::Value::Object(serde_json::Map::new())
     } else {

@@ -26,6 +26,8 @@ pub struct LaunchArgs {
     pub buffer: usize,
     /// Plan only.
     pub dry_run: bool,
+    /// Log filter, handed on to the stages.
+    pub log: String,
 }
 
 fn parse_overrides(set: &[String]) -> Result<Vec<(String, String)>> {
@@ -73,6 +75,7 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     opts.record.clone_from(&args.record);
     opts.host.clone_from(&args.host);
     opts.buffer = args.buffer.max(1);
+    opts.log_filter = Some(args.log.clone());
     let plan = launch::plan(&graph, &opts)?;
     if args.dry_run {
         let specs: Vec<&NodeSpec> = plan.nodes.iter().map(|(s, _)| s).collect();
@@ -80,7 +83,12 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let stop = bind_signals().context("cannot install signal handlers")?;
-    eprintln!("gprflow: graph `{}` run {} ({} processes)", graph.name, plan.run_id, plan.nodes.len());
+    eprintln!(
+        "gprflow: graph `{}` run {} ({} processes)",
+        graph.name,
+        plan.run_id,
+        plan.nodes.len()
+    );
     let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::stderr());
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} {wide_bar} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
@@ -92,7 +100,11 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     for n in &report.nodes {
         let failed_first = report.first_failure.as_deref() == Some(&n.node);
         if failed_first {
-            eprintln!("error: node `{}` failed ({}); last lines of its stderr:", n.node, n.describe());
+            eprintln!(
+                "error: node `{}` failed ({}); last lines of its stderr:",
+                n.node,
+                n.describe()
+            );
             for l in &n.stderr_tail {
                 eprintln!("  | {l}");
             }
@@ -101,10 +113,19 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
         }
     }
     if !report.cleaned_up.is_empty() {
-        eprintln!("removed {} stale shared-memory resources of run {}", report.cleaned_up.len(), report.run_id);
+        eprintln!(
+            "removed {} stale shared-memory resources of run {}",
+            report.cleaned_up.len(),
+            report.run_id
+        );
     }
     if report.succeeded() {
-        eprintln!("graph `{}` finished in {:.2} s ({} processes)", graph.name, report.wall.as_secs_f64(), report.nodes.len());
+        eprintln!(
+            "graph `{}` finished in {:.2} s ({} processes)",
+            graph.name,
+            report.wall.as_secs_f64(),
+            report.nodes.len()
+        );
         if let Some(r) = &args.record {
             eprintln!("recorded {}", r.display());
         }
@@ -123,7 +144,8 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
 /// Unreadable spec or the stage's error.
 pub fn stage(kind: &str, spec_file: &Path) -> Result<ExitCode> {
     let text = std::fs::read_to_string(spec_file).with_context(|| format!("cannot read {}", spec_file.display()))?;
-    let spec: NodeSpec = serde_json::from_str(&text).with_context(|| format!("{}: not a node spec", spec_file.display()))?;
+    let spec: NodeSpec =
+        serde_json::from_str(&text).with_context(|| format!("{}: not a node spec", spec_file.display()))?;
     let stop = bind_signals().context("cannot install signal handlers")?;
     crate::run_stage(kind, &spec, &stop).with_context(|| format!("node `{}` ({kind})", spec.node))?;
     Ok(ExitCode::SUCCESS)
@@ -156,7 +178,10 @@ pub fn inspect(file: &Path, json: bool, dump_json: bool) -> Result<ExitCode> {
             return Err(e.into());
         }
         if let Some(at) = stopped {
-            eprintln!("warning: {}: reading stopped early {at}; run `gprflow recover`", file.display());
+            eprintln!(
+                "warning: {}: reading stopped early {at}; run `gprflow recover`",
+                file.display()
+            );
         }
         return Ok(ExitCode::SUCCESS);
     }
@@ -169,25 +194,44 @@ pub fn inspect(file: &Path, json: bool, dump_json: bool) -> Result<ExitCode> {
         writeln!(out, "messages:  {} over {:.3} s", summary.messages, span)?;
         if let Some(m) = summary.metadata.get("gprflow") {
             let get = |k: &str| m.get(k).map_or("?", String::as_str);
-            writeln!(out, "run:       {} graph `{}` ({}), gprflow {} ({})", get("run_id"), get("graph_name"), get("graph_file"), get("version"), get("commit"))?;
+            writeln!(
+                out,
+                "run:       {} graph `{}` ({}), gprflow {} ({})",
+                get("run_id"),
+                get("graph_name"),
+                get("graph_file"),
+                get("version"),
+                get("commit")
+            )?;
         }
         if !summary.attachments.is_empty() {
             writeln!(out, "attached:  {}", summary.attachments.join(", "))?;
         }
-        writeln!(out, "{:<28} {:<32} {:>8} {:>10} {:>9}", "topic", "type", "count", "rate Hz", "problems")?;
+        writeln!(
+            out,
+            "{:<28} {:<32} {:>8} {:>10} {:>9}",
+            "topic", "type", "count", "rate Hz", "problems"
+        )?;
         for t in &summary.topics {
             let problems = match (t.decode_errors, t.seq_gaps) {
                 (0, 0) => String::new(),
                 (d, g) => format!("{d} undecodable, {g} seq gaps"),
             };
-            writeln!(out, "{:<28} {:<32} {:>8} {:>10.2} {problems}", t.topic, t.msg_type, t.count, t.rate_hz)?;
+            writeln!(
+                out,
+                "{:<28} {:<32} {:>8} {:>10.2} {problems}",
+                t.topic, t.msg_type, t.count, t.rate_hz
+            )?;
         }
         for (topic, seq, e) in &summary.decode_errors {
             writeln!(out, "decode error: {topic} seq {seq}: {e}")?;
         }
     }
     if let Some(at) = &summary.truncated {
-        eprintln!("warning: {}: reading stopped early {at}; every complete chunk before it was read. `gprflow recover` rewrites it.", file.display());
+        eprintln!(
+            "warning: {}: reading stopped early {at}; every complete chunk before it was read. `gprflow recover` rewrites it.",
+            file.display()
+        );
         return Ok(ExitCode::from(1));
     }
     if !summary.decode_errors.is_empty() {
@@ -206,8 +250,15 @@ pub fn recover(file: &Path, output: &Path) -> Result<ExitCode> {
     }
     let (kept, stopped) = record::recover(file, output)?;
     match stopped {
-        Some(at) => eprintln!("recovered {kept} messages into {} (the input stopped {at})", output.display()),
-        None => eprintln!("{} was complete; rewrote {kept} messages into {}", file.display(), output.display()),
+        Some(at) => eprintln!(
+            "recovered {kept} messages into {} (the input stopped {at})",
+            output.display()
+        ),
+        None => eprintln!(
+            "{} was complete; rewrote {kept} messages into {}",
+            file.display(),
+            output.display()
+        ),
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -224,7 +275,13 @@ pub fn stages() -> Result<ExitCode> {
             InputPorts::Any => writeln!(out, "    in:  any topics")?,
             InputPorts::Fixed(inputs) => {
                 for i in inputs {
-                    writeln!(out, "    in:  {} ({}){}", i.port.name, i.port.msg_type, if i.optional { ", optional" } else { "" })?;
+                    writeln!(
+                        out,
+                        "    in:  {} ({}){}",
+                        i.port.name,
+                        i.port.msg_type,
+                        if i.optional { ", optional" } else { "" }
+                    )?;
                 }
             }
         }
@@ -243,6 +300,12 @@ pub fn stages() -> Result<ExitCode> {
 /// The graph's first error.
 pub fn check(graph: &Path, set: &[String]) -> Result<ExitCode> {
     let g = gprflow::graph::load(graph, &parse_overrides(set)?, &catalog())?;
-    eprintln!("{}: graph `{}` is valid ({} nodes, {} topics)", graph.display(), g.name, g.nodes.len(), g.topics().len());
+    eprintln!(
+        "{}: graph `{}` is valid ({} nodes, {} topics)",
+        graph.display(),
+        g.name,
+        g.nodes.len(),
+        g.topics().len()
+    );
     Ok(ExitCode::SUCCESS)
 }

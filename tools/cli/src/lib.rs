@@ -40,7 +40,11 @@ pub fn run_stage(
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(
             "unknown stage `{other}` (known: {})",
-            catalog().iter().map(|s| s.name().to_owned()).collect::<Vec<_>>().join(", ")
+            catalog()
+                .iter()
+                .map(|s| s.name().to_owned())
+                .collect::<Vec<_>>()
+                .join(", ")
         ))),
     }
 }

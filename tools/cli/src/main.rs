@@ -91,13 +91,31 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    let filter =
+        tracing_subscriber::EnvFilter::try_new(&cli.log).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
     use gprflow_cli::commands;
     let result = match cli.command {
-        Command::Launch { graph, set, record, host, buffer, dry_run } => {
-            commands::launch(&commands::LaunchArgs { graph, set, record, host, buffer, dry_run })
-        }
+        Command::Launch {
+            graph,
+            set,
+            record,
+            host,
+            buffer,
+            dry_run,
+        } => commands::launch(&commands::LaunchArgs {
+            graph,
+            set,
+            record,
+            host,
+            buffer,
+            dry_run,
+            log: cli.log.clone(),
+        }),
         Command::Stage { kind, spec } => commands::stage(&kind, &spec),
         Command::Inspect { file, json, dump_json } => commands::inspect(&file, json, dump_json),
         Command::Recover { file, output } => commands::recover(&file, &output),
