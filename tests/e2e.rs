@@ -15,7 +15,11 @@ fn repo() -> PathBuf {
 }
 
 fn gprflow(args: &[&str]) -> Output {
-    Command::new(GPRFLOW).current_dir(repo()).args(args).output().expect("gprflow runs")
+    Command::new(GPRFLOW)
+        .current_dir(repo())
+        .args(args)
+        .output()
+        .expect("gprflow runs")
 }
 
 fn stderr(o: &Output) -> String {
@@ -45,20 +49,35 @@ fn toy_graph_is_deterministic_and_replays_identically() {
     let a = dir.path().join("a.mcap");
     let b = dir.path().join("b.mcap");
     for f in [&a, &b] {
-        let o = gprflow(&["launch", "graphs/toy.yaml", "--set", "count=500", "--record", f.to_str().expect("utf8")]);
+        let o = gprflow(&[
+            "launch",
+            "graphs/toy.yaml",
+            "--set",
+            "count=500",
+            "--record",
+            f.to_str().expect("utf8"),
+        ]);
         assert!(o.status.success(), "launch failed: {}", stderr(&o));
     }
     let pa = payloads(&a);
     assert_eq!(pa.keys().collect::<Vec<_>>(), ["/gain/trace", "/gen/trace"]);
     assert_eq!(pa["/gen/trace"].len(), 500);
     assert_eq!(pa["/gain/trace"].len(), 500);
-    assert_eq!(pa, payloads(&b), "two runs of one graph must record byte-identical payloads");
+    assert_eq!(
+        pa,
+        payloads(&b),
+        "two runs of one graph must record byte-identical payloads"
+    );
 
     // replay A's source topic through the graph again: the gain output must be identical
     let c = dir.path().join("c.mcap");
     let o = gprflow(&[
-        "launch", "graphs/replay-toy.yaml", "--set", &format!("recording={}", a.display()),
-        "--record", c.to_str().expect("utf8"),
+        "launch",
+        "graphs/replay-toy.yaml",
+        "--set",
+        &format!("recording={}", a.display()),
+        "--record",
+        c.to_str().expect("utf8"),
     ]);
     assert!(o.status.success(), "replay failed: {}", stderr(&o));
     let pc = payloads(&c);
@@ -75,7 +94,14 @@ fn python_mcap_reader_decodes_every_field_alike() {
     );
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("peer.mcap");
-    let o = gprflow(&["launch", "graphs/toy.yaml", "--set", "count=300", "--record", rec.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "launch",
+        "graphs/toy.yaml",
+        "--set",
+        "count=300",
+        "--record",
+        rec.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let dump = gprflow(&["inspect", rec.to_str().expect("utf8"), "--dump-json"]);
     assert!(dump.status.success(), "{}", stderr(&dump));
@@ -100,7 +126,9 @@ fn python_mcap_reader_decodes_every_field_alike() {
 fn pids_with(needle: &str) -> Vec<u32> {
     let mut out = Vec::new();
     for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
         if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
             if String::from_utf8_lossy(&cmd).contains(needle) {
                 out.push(pid);
@@ -114,7 +142,14 @@ fn pids_with(needle: &str) -> Vec<u32> {
 fn kill_mid_run(victim: &str, record: &Path, after: Duration) -> (Output, String) {
     let child = Command::new(GPRFLOW)
         .current_dir(repo())
-        .args(["launch", "graphs/toy.yaml", "--set", "count=100000000", "--record", record.to_str().expect("utf8")])
+        .args([
+            "launch",
+            "graphs/toy.yaml",
+            "--set",
+            "count=100000000",
+            "--record",
+            record.to_str().expect("utf8"),
+        ])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("launch starts");
@@ -133,7 +168,11 @@ fn kill_mid_run(victim: &str, record: &Path, after: Duration) -> (Output, String
         .first()
         .and_then(|p| std::fs::read(format!("/proc/{p}/cmdline")).ok())
         .map(|c| String::from_utf8_lossy(&c).into_owned())
-        .and_then(|c| c.split('\0').find(|a| a.ends_with(&needle)).map(|a| a.trim_end_matches(&needle).to_owned()))
+        .and_then(|c| {
+            c.split('\0')
+                .find(|a| a.ends_with(&needle))
+                .map(|a| a.trim_end_matches(&needle).to_owned())
+        })
         .expect("spec dir");
     let _ = Command::new("kill").args(["-9", &victim_pid.to_string()]).status();
     let out = child.wait_with_output().expect("launcher ends");
@@ -151,7 +190,11 @@ fn killed_stage_stops_the_run_and_leaves_nothing_behind() {
     // no orphan processes of the run
     let start = Instant::now();
     while !pids_with(&spec_dir).is_empty() {
-        assert!(start.elapsed() < Duration::from_secs(5), "orphans: {:?}", pids_with(&spec_dir));
+        assert!(
+            start.elapsed() < Duration::from_secs(5),
+            "orphans: {:?}",
+            pids_with(&spec_dir)
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     // no stale shared memory or iceoryx2 files of the run
@@ -177,7 +220,12 @@ fn recording_cut_off_by_sigkill_gives_back_every_complete_chunk() {
     assert!(read > 0, "complete chunks must be readable: {summary}");
 
     let fixed = dir.path().join("fixed.mcap");
-    let o = gprflow(&["recover", rec.to_str().expect("utf8"), "-o", fixed.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "recover",
+        rec.to_str().expect("utf8"),
+        "-o",
+        fixed.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let recovered: usize = payloads(&fixed).values().map(Vec::len).sum();
     assert_eq!(recovered as u64, read);
@@ -189,13 +237,20 @@ fn recording_cut_off_by_sigkill_gives_back_every_complete_chunk() {
 fn graph_fixtures_validate_as_declared() {
     let catalog = gprflow_cli::catalog();
     let mut seen = 0;
-    for e in std::fs::read_dir(repo().join("tests/graphs")).expect("fixtures").flatten() {
+    for e in std::fs::read_dir(repo().join("tests/graphs"))
+        .expect("fixtures")
+        .flatten()
+    {
         let path = e.path();
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_owned();
         let text = std::fs::read_to_string(&path).expect("readable");
         let result = gprflow::graph::load(&path, &[], &catalog);
         if name.starts_with("valid-") {
-            assert!(result.is_ok(), "{name}: {}", result.err().map(|e| e.to_string()).unwrap_or_default());
+            assert!(
+                result.is_ok(),
+                "{name}: {}",
+                result.err().map(|e| e.to_string()).unwrap_or_default()
+            );
         } else if name.starts_with("invalid-") {
             let expected = text
                 .lines()
@@ -203,9 +258,14 @@ fn graph_fixtures_validate_as_declared() {
                 .and_then(|l| l.strip_prefix("# expect: "))
                 .unwrap_or_else(|| panic!("{name}: first line must be `# expect: Kind`"))
                 .trim();
-            let err = result.err().unwrap_or_else(|| panic!("{name}: expected {expected}, got a valid graph"));
+            let err = result
+                .err()
+                .unwrap_or_else(|| panic!("{name}: expected {expected}, got a valid graph"));
             assert_eq!(format!("{:?}", err.kind()), expected, "{name}: {err}");
-            assert!(err.to_string().contains(&name), "{name}: error must name the file: {err}");
+            assert!(
+                err.to_string().contains(&name),
+                "{name}: error must name the file: {err}"
+            );
         }
         seen += 1;
     }

@@ -484,6 +484,21 @@ impl Outbox {
         self.check_reached(self.next_seq, reached)
     }
 
+    /// Waits until every subscriber has left the topic (or `timeout` passes, or `stop`
+    /// turns true). A publisher must outlive the frames it sent: with iceoryx2 the payloads
+    /// live in the publisher's shared memory, and a consumer that has not read them yet
+    /// would lose them if the publisher exited first. Returns whether all left.
+    pub fn linger(&self, timeout: Duration, stop: &dyn Fn() -> bool) -> bool {
+        let start = std::time::Instant::now();
+        while self.publisher.subscriber_count() > 0 {
+            if stop() || start.elapsed() > timeout {
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        true
+    }
+
     /// Sends end of stream (once).
     ///
     /// # Errors

@@ -31,21 +31,21 @@ pub(crate) struct Source<'a> {
 
 impl Source<'_> {
     /// Points at the key naming `path` (or the nearest enclosing one in the file).
-    pub(crate) fn at_key(&self, path: &[String]) -> Location {
+    pub(crate) fn at_key(&self, path: &[String]) -> Box<Location> {
         self.location(path, self.positions.key(path))
     }
 
     /// Points at the value at `path` (or the nearest enclosing one in the file).
-    pub(crate) fn at_value(&self, path: &[String]) -> Location {
+    pub(crate) fn at_value(&self, path: &[String]) -> Box<Location> {
         self.location(path, self.positions.value(path))
     }
 
-    fn location(&self, path: &[String], position: Option<Position>) -> Location {
-        Location {
+    fn location(&self, path: &[String], position: Option<Position>) -> Box<Location> {
+        Box::new(Location {
             file: self.file.to_owned(),
             position,
             key_path: path.join("."),
-        }
+        })
     }
 }
 
@@ -162,6 +162,14 @@ fn check_node<'c>(
         path
     };
 
+    // `/` separates node from output in references (`gen/trace`).
+    if name.is_empty() || name.contains('/') {
+        return Err(GraphError::Structure {
+            at: source.at_key(&here(&[])),
+            message: format!("node name `{name}` must be non-empty and without `/`"),
+        });
+    }
+
     let mut params = Value::Object(node.params.clone().unwrap_or_default());
     vars::substitute_value(&mut params, vars).map_err(|(below, problem)| {
         let text = string_at(node.params.as_ref(), &below);
@@ -258,7 +266,11 @@ fn check_inputs(
     drafts: &[Draft<'_>],
     source: &Source<'_>,
 ) -> Result<Vec<Input>, GraphError> {
-    let declared = draft.stage.map(|stage| stage.inputs());
+    // The stage and its inputs, when it declares a fixed set (exec nodes and `Any` take any).
+    let fixed = draft.stage.and_then(|stage| match stage.inputs() {
+        InputPorts::Fixed(specs) => Some((stage, specs)),
+        InputPorts::Any => None,
+    });
     let here = |parts: &[&str]| {
         let mut path = key_path(&["nodes", &draft.name, "inputs"]);
         path.extend(parts.iter().map(|part| (*part).to_owned()));
@@ -268,8 +280,8 @@ fn check_inputs(
     let mut inputs = Vec::with_capacity(node.inputs.len());
     for (input_name, input) in &node.inputs {
         // The type this input takes, when the stage says.
-        let expected = match (&declared, draft.stage) {
-            (Some(InputPorts::Fixed(specs)), Some(stage)) => {
+        let expected = match &fixed {
+            Some((stage, specs)) => {
                 let spec = specs.iter().find(|spec| &spec.port.name == input_name).ok_or_else(|| {
                     GraphError::UnknownInput {
                         at: source.at_key(&here(&[input_name])),
@@ -280,7 +292,7 @@ fn check_inputs(
                 })?;
                 Some(spec.port.msg_type.as_str())
             }
-            _ => None,
+            None => None,
         };
 
         let (reference, reference_path, feedback_delay_s, latest_only) = match input {
@@ -348,7 +360,7 @@ fn check_inputs(
         });
     }
 
-    if let (Some(InputPorts::Fixed(specs)), Some(stage)) = (&declared, draft.stage)
+    if let Some((stage, specs)) = &fixed
         && let Some(missing) = specs
             .iter()
             .find(|spec| !spec.optional && !node.inputs.contains_key(&spec.port.name))

@@ -46,7 +46,8 @@ impl fmt::Display for Location {
 
 /// A graph file that cannot be run, with the place and the reason.
 ///
-/// Display reads `file:line:column: key.path: what is wrong`.
+/// Display reads `file:line:column: key.path: what is wrong`. Locations are boxed to keep
+/// the error small.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum GraphError {
@@ -63,7 +64,7 @@ pub enum GraphError {
     #[error("{at}: YAML syntax error: {message}")]
     Syntax {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The parser's words.
         message: String,
     },
@@ -71,7 +72,7 @@ pub enum GraphError {
     #[error("{at}: {message}")]
     Structure {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// What is wrong.
         message: String,
     },
@@ -79,7 +80,7 @@ pub enum GraphError {
     #[error("{at}: duplicate key `{key}` (first at line {}, column {})", first.line, first.column)]
     DuplicateKey {
         /// Where the second one is.
-        at: Location,
+        at: Box<Location>,
         /// The key.
         key: String,
         /// Where the first one is.
@@ -89,7 +90,7 @@ pub enum GraphError {
     #[error("{at}: node `{node}` is already on host `{first_host}`; a node runs on one host")]
     NodeOnTwoHosts {
         /// Where the second listing is.
-        at: Location,
+        at: Box<Location>,
         /// The node.
         node: String,
         /// The host that lists it first.
@@ -99,7 +100,7 @@ pub enum GraphError {
     #[error("{at}: unknown stage `{stage}` (stages are: {known})")]
     UnknownStage {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The name as written.
         stage: String,
         /// The stage kinds there are, comma separated.
@@ -109,7 +110,7 @@ pub enum GraphError {
     #[error("{at}: bad parameter for stage `{stage}`: {message}")]
     BadParam {
         /// Where (`nodes.N.params.<key>`).
-        at: Location,
+        at: Box<Location>,
         /// The stage kind.
         stage: String,
         /// The stage's words.
@@ -119,7 +120,7 @@ pub enum GraphError {
     #[error("{at}: no node `{node}` (nodes are: {known})")]
     NoSuchNode {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The node named by the reference.
         node: String,
         /// The nodes there are.
@@ -129,7 +130,7 @@ pub enum GraphError {
     #[error("{at}: node `{node}` has no output `{output}` (its outputs are: {known})")]
     NoSuchOutput {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The node named by the reference.
         node: String,
         /// The output named by the reference.
@@ -141,7 +142,7 @@ pub enum GraphError {
     #[error("{at}: stage `{stage}` needs input `{input}` ({msg_type}), which is not wired")]
     MissingInput {
         /// Where (the node's `inputs`, or the node).
-        at: Location,
+        at: Box<Location>,
         /// The stage kind.
         stage: String,
         /// The input.
@@ -153,7 +154,7 @@ pub enum GraphError {
     #[error("{at}: stage `{stage}` has no input `{input}` (its inputs are: {known})")]
     UnknownInput {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The stage kind.
         stage: String,
         /// The input as written.
@@ -165,7 +166,7 @@ pub enum GraphError {
     #[error("{at}: input `{input}` takes {expected} but `{from}` is {actual}")]
     TypeMismatch {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The input.
         input: String,
         /// The type the input takes.
@@ -179,7 +180,7 @@ pub enum GraphError {
     #[error("{at}: node `{node}` is on no host (hosts are: {hosts}); with `hosts:` every node needs one")]
     NodeOnNoHost {
         /// Where the node is declared.
-        at: Location,
+        at: Box<Location>,
         /// The node.
         node: String,
         /// The hosts there are.
@@ -189,7 +190,7 @@ pub enum GraphError {
     #[error("{at}: host `{host}` lists `{node}`, which is not a node (nodes are: {known})")]
     UnknownHostNode {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The host.
         host: String,
         /// The name as listed.
@@ -201,7 +202,7 @@ pub enum GraphError {
     #[error("{at}: `{reference}` is not an output reference of the form `node/output`")]
     BadReference {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The reference as written.
         reference: String,
     },
@@ -209,7 +210,7 @@ pub enum GraphError {
     #[error("{at}: unknown variable `{name}` (variables are: {known}); declare it under `inputs:`")]
     UnknownVariable {
         /// Where the reference is.
-        at: Location,
+        at: Box<Location>,
         /// The variable name.
         name: String,
         /// The variables there are.
@@ -219,7 +220,7 @@ pub enum GraphError {
     #[error("{at}: `${{` without a closing `}}` in `{text}`")]
     UnclosedVariable {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The string as written.
         text: String,
     },
@@ -227,7 +228,7 @@ pub enum GraphError {
     #[error("{at}: `--set {name}=...` names no variable of this graph (variables are: {known})")]
     UnknownOverride {
         /// The file's `inputs:`.
-        at: Location,
+        at: Box<Location>,
         /// The variable name given.
         name: String,
         /// The variables there are.
@@ -240,7 +241,7 @@ pub enum GraphError {
     )]
     Cycle {
         /// The input that closes the cycle.
-        at: Location,
+        at: Box<Location>,
         /// The nodes around the cycle, `a -> b -> a`.
         cycle: String,
     },
@@ -248,7 +249,7 @@ pub enum GraphError {
     #[error("{at}: feedback_delay_s must be a positive number of seconds (at least 1 ns), got {value}")]
     BadFeedbackDelay {
         /// Where.
-        at: Location,
+        at: Box<Location>,
         /// The value as read.
         value: f64,
     },
@@ -406,7 +407,7 @@ impl GraphError {
             | Self::UnclosedVariable { at, .. }
             | Self::UnknownOverride { at, .. }
             | Self::Cycle { at, .. }
-            | Self::BadFeedbackDelay { at, .. } => Some(at),
+            | Self::BadFeedbackDelay { at, .. } => Some(at.as_ref()),
         }
     }
 }

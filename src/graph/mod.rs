@@ -84,19 +84,11 @@ pub fn json_schema() -> schemars::Schema {
 fn scan_error(file: &Path, problem: ScanProblem) -> GraphError {
     match problem {
         ScanProblem::Syntax { position, message } => GraphError::Syntax {
-            at: Location {
-                file: file.to_owned(),
-                position: Some(position),
-                key_path: String::new(),
-            },
+            at: location(file, Some(position), String::new()),
             message,
         },
         ScanProblem::DuplicateKey { path, key, at, first } => GraphError::DuplicateKey {
-            at: Location {
-                file: file.to_owned(),
-                position: Some(at),
-                key_path: path.join("."),
-            },
+            at: location(file, Some(at), path.join(".")),
             key,
             first,
         },
@@ -105,6 +97,7 @@ fn scan_error(file: &Path, problem: ScanProblem) -> GraphError {
 
 /// A deserialiser error: the file is YAML, but not a graph file.
 fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphError {
+    let error = error.without_snippet();
     let position = error
         .location()
         .filter(|location| location.line() > 0)
@@ -112,19 +105,23 @@ fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphErr
             line: location.line() as usize,
             column: location.column() as usize,
         });
-    let missing_field = matches!(error.without_snippet(), serde_saphyr::Error::SerdeMissingField { .. });
+    let missing_field = matches!(error, serde_saphyr::Error::SerdeMissingField { .. });
     let key_path = position
         .and_then(|position| source.positions.path_at(position, missing_field))
         .map(|path| path.join("."))
         .unwrap_or_default();
-    let message = serde_saphyr::DefaultMessageFormatter.format_message(error.without_snippet());
+    let message = serde_saphyr::DefaultMessageFormatter.format_message(error);
     GraphError::Structure {
-        at: Location {
-            file: source.file.to_owned(),
-            position,
-            key_path,
-        },
+        at: location(source.file, position, key_path),
         // The message may quote the file: keep control characters out of terminals.
         message: message.chars().map(|c| if c.is_control() { ' ' } else { c }).collect(),
     }
+}
+
+fn location(file: &Path, position: Option<Position>, key_path: String) -> Box<Location> {
+    Box::new(Location {
+        file: file.to_owned(),
+        position,
+        key_path,
+    })
 }

@@ -22,6 +22,34 @@ struct FakeStage {
     check: fn(&Value) -> Result<(), ParamError>,
 }
 
+impl FakeStage {
+    /// A stage kind with these ports that takes any parameters.
+    fn new(name: &'static str, inputs: InputPorts, outputs: &[(&str, &str)]) -> Self {
+        Self {
+            name,
+            inputs,
+            outputs: outputs
+                .iter()
+                .map(|(name, msg_type)| PortSpec::new(name, msg_type))
+                .collect(),
+            outputs_from_params: false,
+            check: |_| Ok(()),
+        }
+    }
+
+    /// Checks parameters with `check`.
+    fn params(mut self, check: fn(&Value) -> Result<(), ParamError>) -> Self {
+        self.check = check;
+        self
+    }
+
+    /// Outputs named by `params.channels`, as a replay's are by its recording.
+    fn outputs_from_params(mut self) -> Self {
+        self.outputs_from_params = true;
+        self
+    }
+}
+
 impl StageInfo for FakeStage {
     fn name(&self) -> &str {
         self.name
@@ -110,49 +138,28 @@ fn input(name: &str, msg_type: &str, optional: bool) -> InputSpec {
 /// The real stage kinds' declarations (toy_source, toy_gain, record, replay), plus two
 /// more for multi-input and message-type tests.
 fn catalog() -> StageCatalog {
-    StageCatalog::new()
-        .with(Box::new(FakeStage {
-            name: "toy_source",
-            inputs: InputPorts::Fixed(vec![]),
-            outputs: vec![PortSpec::new("trace", TRACE)],
-            outputs_from_params: false,
-            check: |p| parse_params::<SourceParams>(p).map(drop),
-        }))
-        .with(Box::new(FakeStage {
-            name: "toy_gain",
-            inputs: InputPorts::Fixed(vec![input("trace", TRACE, false)]),
-            outputs: vec![PortSpec::new("trace", TRACE)],
-            outputs_from_params: false,
-            check: |p| parse_params::<GainParams>(p).map(drop),
-        }))
-        .with(Box::new(FakeStage {
-            name: "record",
-            inputs: InputPorts::Any,
-            outputs: vec![],
-            outputs_from_params: false,
-            check: |p| parse_params::<RecordParams>(p).map(drop),
-        }))
-        .with(Box::new(FakeStage {
-            name: "replay",
-            inputs: InputPorts::Fixed(vec![]),
-            outputs: vec![],
-            outputs_from_params: true,
-            check: |p| parse_params::<ReplayParams>(p).map(drop),
-        }))
-        .with(Box::new(FakeStage {
-            name: "imu_source",
-            inputs: InputPorts::Fixed(vec![]),
-            outputs: vec![PortSpec::new("imu", IMU)],
-            outputs_from_params: false,
-            check: |_| Ok(()),
-        }))
-        .with(Box::new(FakeStage {
-            name: "fuse",
-            inputs: InputPorts::Fixed(vec![input("trace", TRACE, false), input("imu", IMU, true)]),
-            outputs: vec![PortSpec::new("trace", TRACE)],
-            outputs_from_params: false,
-            check: |_| Ok(()),
-        }))
+    let none = || InputPorts::Fixed(vec![]);
+    [
+        FakeStage::new("toy_source", none(), &[("trace", TRACE)]).params(|p| parse_params::<SourceParams>(p).map(drop)),
+        FakeStage::new(
+            "toy_gain",
+            InputPorts::Fixed(vec![input("trace", TRACE, false)]),
+            &[("trace", TRACE)],
+        )
+        .params(|p| parse_params::<GainParams>(p).map(drop)),
+        FakeStage::new("record", InputPorts::Any, &[]).params(|p| parse_params::<RecordParams>(p).map(drop)),
+        FakeStage::new("replay", none(), &[])
+            .params(|p| parse_params::<ReplayParams>(p).map(drop))
+            .outputs_from_params(),
+        FakeStage::new("imu_source", none(), &[("imu", IMU)]),
+        FakeStage::new(
+            "fuse",
+            InputPorts::Fixed(vec![input("trace", TRACE, false), input("imu", IMU, true)]),
+            &[("trace", TRACE)],
+        ),
+    ]
+    .into_iter()
+    .fold(StageCatalog::new(), |catalog, stage| catalog.with(Box::new(stage)))
 }
 
 const TOY: &str = r#"name: toy
@@ -495,7 +502,7 @@ nodes:
     );
 
     // A value that is not a number stays a string, and the stage says so.
-    let error = parse_with(text, &[("count", "many")]).err().expect("bad count");
+    let error = parse_with(text, &[("count", "many")]).expect_err("bad count");
     assert_eq!(error.kind(), GraphErrorKind::BadParam, "{error}");
 }
 
@@ -503,30 +510,26 @@ nodes:
 fn unknown_variables_are_errors() {
     let text =
         "name: v\ninputs: { count: \"5\" }\nnodes:\n  gen: { stage: toy_source, params: { count: \"${cuont}\" } }\n";
-    let error = parse_with(text, &[]).err().expect("error");
+    let error = parse_with(text, &[]).expect_err("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert_eq!(
         error.to_string(),
         "t.yaml:4:46: nodes.gen.params.count: unknown variable `cuont` (variables are: count); declare it under `inputs:`"
     );
 
-    let error = parse_with(&text.replace("cuont", "count"), &[("seed", "3")])
-        .err()
-        .expect("error");
+    let error = parse_with(&text.replace("cuont", "count"), &[("seed", "3")]).expect_err("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert_eq!(
         error.to_string(),
         "t.yaml:2:1: inputs: `--set seed=...` names no variable of this graph (variables are: count)"
     );
 
-    let error = parse_with(&text.replace("${cuont}", "${count"), &[])
-        .err()
-        .expect("error");
+    let error = parse_with(&text.replace("${cuont}", "${count"), &[]).expect_err("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert!(matches!(error, GraphError::UnclosedVariable { .. }), "{error}");
 
     let exec = "name: v\nnodes:\n  x: { exec: \"${bin}/x\" }\n";
-    let error = parse_with(exec, &[]).err().expect("error");
+    let error = parse_with(exec, &[]).expect_err("error");
     assert_eq!(error.kind(), GraphErrorKind::UnknownVariable);
     assert_eq!(
         error.location().and_then(|l| l.position),
@@ -539,9 +542,7 @@ fn unknown_variables_are_errors() {
 
 #[test]
 fn io_error() {
-    let error = load(Path::new("/nonexistent/graph.yaml"), &[], &catalog())
-        .err()
-        .expect("error");
+    let error = load(Path::new("/nonexistent/graph.yaml"), &[], &catalog()).expect_err("error");
     assert_eq!(error.kind(), GraphErrorKind::Io);
     assert!(error.location().is_none());
     assert!(
@@ -641,6 +642,14 @@ fn structure_errors() {
     assert_eq!(
         error.to_string(),
         "t.yaml:3:3: nodes.gen: node `gen` needs `stage:` (a stage kind) or `exec:` (an executable)"
+    );
+    let error = assert_kind(
+        "name: t\nnodes:\n  a/b: { stage: toy_source }\n",
+        GraphErrorKind::Structure,
+    );
+    assert_eq!(
+        error.to_string(),
+        "t.yaml:3:3: nodes.a/b: node name `a/b` must be non-empty and without `/`"
     );
     assert_kind(
         "name: t\nnodes:\n  gen: { stage: toy_source, outputs: { a: b } }\n",
@@ -802,7 +811,7 @@ fn node_on_no_host() {
         "t.yaml:7:3: nodes.reg: node `reg` is on no host (hosts are: robot, base); with `hosts:` every node needs one"
     );
     assert_kind(
-        &format!("{TOY}").replace("hosts:\n  robot", "hosts: {}\nxhosts:\n  robot"),
+        &TOY.replace("hosts:\n  robot", "hosts: {}\nxhosts:\n  robot"),
         GraphErrorKind::Structure,
     );
 }

@@ -668,7 +668,10 @@ pub fn cleanup_run(prefix: &str) -> Vec<String> {
             std::fs::remove_file(&path)
         };
         // a node's own directory (named by node id) is left empty: remove it too
-        if let Some(parent) = path.parent().filter(|p| p.parent().is_some_and(|g| g.ends_with("nodes"))) {
+        if let Some(parent) = path
+            .parent()
+            .filter(|p| p.parent().is_some_and(|g| g.ends_with("nodes")))
+        {
             let _ = std::fs::remove_dir(parent);
         }
         let expected = path.extension().is_some_and(|e| e == "global_mgmt");

@@ -556,6 +556,14 @@ pub fn run_node<S: Stage>(
         Err(e) => return Err(e.into()),
     }
     drop(stage);
+    for o in &out.outboxes {
+        if !o.linger(handshake, &stopped) && !stopped() {
+            tracing::warn!(
+                topic = o.topic(),
+                "consumers still attached {handshake:?} after end of stream"
+            );
+        }
+    }
 
     let report = RunReport {
         node: spec.node.clone(),

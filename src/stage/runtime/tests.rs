@@ -52,7 +52,13 @@ fn binding(name: &str, delay: Option<i64>) -> InputBinding {
 
 /// Publishes `stamps` on `src/NAME`, sleeping a jittered while between messages.
 /// `required` is 0 for a feedback consumer, which may finish before the stream ends.
-fn source(bus: InProcess, name: &'static str, stamps: Vec<i64>, jitter_seed: u64, required: usize) -> std::thread::JoinHandle<()> {
+fn source(
+    bus: InProcess,
+    name: &'static str,
+    stamps: Vec<i64>,
+    jitter_seed: u64,
+    required: usize,
+) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         let topic = binding(name, None).topic_config();
         let publisher = bus.publisher(&topic).expect("publisher");
@@ -90,7 +96,13 @@ fn run_merge(jitter: u64, delay_b: Option<i64>) -> Vec<(String, i64)> {
     // a: every 10 ns; b: every 15 ns, with shared stamps (ties) at multiples of 30
     let a = source(bus.clone(), "a", (0..40).map(|i| i * 10).collect(), jitter, 1);
     let b_required = usize::from(delay_b.is_none());
-    let b = source(bus.clone(), "b", (0..30).map(|i| i * 15).collect(), jitter ^ 0xdead_beef, b_required);
+    let b = source(
+        bus.clone(),
+        "b",
+        (0..30).map(|i| i * 15).collect(),
+        jitter ^ 0xdead_beef,
+        b_required,
+    );
     SEEN.with(|s| s.borrow_mut().clear());
     let report = run_node::<Collect>(&spec, &bus, &stop).expect("runs");
     a.join().expect("a");
@@ -111,7 +123,11 @@ fn inputs_are_delivered_in_stamp_order_whatever_the_timing() {
     sorted.sort_by(|x, y| (x.1, &x.0).cmp(&(y.1, &y.0)));
     assert_eq!(first, sorted);
     for jitter in [2, 3, 4] {
-        assert_eq!(run_merge(jitter, None), first, "order changed with timing (jitter {jitter})");
+        assert_eq!(
+            run_merge(jitter, None),
+            first,
+            "order changed with timing (jitter {jitter})"
+        );
     }
 }
 

@@ -192,7 +192,11 @@ mod tests {
         assert_ne!(synth_trace(3, 201, 1), synth_trace(3, 201, 2));
         let t = synth_trace(0, 201, 1);
         // the pulse dominates: its peak is near the apex sample (8 ns / 0.2 ns = 40)
-        let peak = t.iter().enumerate().max_by_key(|(_, v)| v.unsigned_abs()).map(|(i, _)| i);
+        let peak = t
+            .iter()
+            .enumerate()
+            .max_by_key(|(_, v)| v.unsigned_abs())
+            .map(|(i, _)| i);
         assert_eq!(peak, Some(40));
     }
 

@@ -1,1 +1,98 @@
-fn main() {}
+//! `gprflow-bench`: benchmark programs of the gprflow runtime.
+//!
+//! `gprflow-bench [ipc] [--quick] [--spin] [--iterations N] [--messages N] [--touch-stride B] [--json FILE]`
+//! measures one hop between two processes over the iceoryx2 transport of the bus
+//! (`gprflow::bus::iox::IoxTransport`) and over a Unix domain socket, next to a plain
+//! in-process `memcpy`, for 4 KiB and 1 MiB messages. The method is described in [`ipc`].
+//!
+//! The program re-executes itself as its partner process (`gprflow-bench echo ...`, hidden):
+//! that role only answers the driver and is of no use on its own.
+
+mod echo;
+mod hop;
+mod iox_hop;
+mod ipc;
+mod memcpy;
+mod payload;
+mod plan;
+mod report;
+mod stats;
+mod uds_hop;
+
+use std::num::NonZeroUsize;
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// Command line of `gprflow-bench`.
+#[derive(Debug, Parser)]
+#[command(
+    name = "gprflow-bench",
+    about = "gprflow benchmarks",
+    args_conflicts_with_subcommands = true
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    /// Options of `ipc`, the default benchmark.
+    #[command(flatten)]
+    ipc: IpcArgs,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// One-hop latency and throughput: iceoryx2 vs Unix domain socket vs memcpy (default).
+    Ipc(IpcArgs),
+    /// The partner process of `ipc` (started by it; not for direct use).
+    #[command(hide = true)]
+    Echo(EchoArgs),
+}
+
+/// Options of the IPC benchmark.
+#[derive(Debug, Clone, Args)]
+pub struct IpcArgs {
+    /// Measured ping-pong round trips per size (default 2000 for 4 KiB, 500 for 1 MiB;
+    /// warm-up round trips come on top and are not recorded).
+    #[arg(long, value_name = "N")]
+    pub iterations: Option<usize>,
+    /// Measured messages of the one-way streaming test per size (default 20000 for 4 KiB,
+    /// 2000 for 1 MiB; warm-up messages come on top).
+    #[arg(long, value_name = "N")]
+    pub messages: Option<usize>,
+    /// A few iterations only: a smoke test, not a measurement.
+    #[arg(long)]
+    pub quick: bool,
+    /// Also measure with busy polling (spinning on `try_receive` / non-blocking reads) next to
+    /// the event-driven wake-up.
+    #[arg(long)]
+    pub spin: bool,
+    /// Receivers check one payload byte in this many (64: every cache line; the message
+    /// size or more: only the first byte, i.e. the data is produced but not consumed).
+    #[arg(long, value_name = "BYTES", default_value_t = payload::DEFAULT_TOUCH_STRIDE)]
+    pub touch_stride: NonZeroUsize,
+    /// Also write the results as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+}
+
+/// Options of the partner process.
+#[derive(Debug, Clone, Args)]
+pub struct EchoArgs {
+    /// iceoryx2 resource prefix of the run.
+    #[arg(long)]
+    pub prefix: String,
+    /// Abstract Unix socket name to connect to.
+    #[arg(long)]
+    pub socket: String,
+}
+
+fn main() -> anyhow::Result<()> {
+    // iceoryx2 warns on every start that no config file was loaded; keep the report readable.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
+    let cli = Cli::parse();
+    match cli.command {
+        None => ipc::run(&cli.ipc),
+        Some(Command::Ipc(args)) => ipc::run(&args),
+        Some(Command::Echo(args)) => echo::run(&args),
+    }
+}
