@@ -289,7 +289,7 @@ pub struct RecordedMessage<'a> {
 }
 
 /// A recording read into memory. Files cut off mid-write are read up to the last complete
-/// chunk; [`Recording::truncated`] says so.
+/// chunk, and [`Recording::scan`] says where reading stopped.
 #[derive(Debug)]
 pub struct Recording {
     path: PathBuf,

@@ -62,7 +62,7 @@ impl fmt::Display for ParamError {
 impl std::error::Error for ParamError {}
 
 /// What the graph checker and the launcher need to know about a stage kind.
-/// Implemented by each stage crate (usually through [`StageDescriptor`]).
+/// Implemented for every [`Stage`](super::Stage) by [`describe`](super::describe).
 pub trait StageInfo: Send + Sync {
     /// Name used in graph files (`stage: dsp`).
     fn name(&self) -> &str;

@@ -7,3 +7,4 @@ tools/peer/setup-venv.sh
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
 cargo nextest run --workspace --no-fail-fast
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet

@@ -9,7 +9,7 @@ use std::time::Duration;
 use super::*;
 use crate::bus::inproc::InProcess;
 use crate::msg::{Header, WheelOdometry};
-use crate::stage::{InputPorts, InputSpec, PortSpec};
+use crate::stage::{InputPorts, PortSpec};
 
 thread_local! {
     static SEEN: RefCell<Vec<(String, i64)>> = const { RefCell::new(Vec::new()) };

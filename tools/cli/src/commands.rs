@@ -79,7 +79,7 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     let plan = launch::plan(&graph, &opts)?;
     if args.dry_run {
         let specs: Vec<&NodeSpec> = plan.nodes.iter().map(|(s, _)| s).collect();
-        println!("{}", serde_json::to_string_pretty(&specs)?);
+        writeln!(std::io::stdout().lock(), "{}", serde_json::to_string_pretty(&specs)?)?;
         return Ok(ExitCode::SUCCESS);
     }
     let stop = bind_signals().context("cannot install signal handlers")?;
