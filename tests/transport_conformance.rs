@@ -108,6 +108,7 @@ fn lossless_in_order_under_backpressure<S: Sut>(sut: S) {
     }
     assert!(matches!(next(&mut inbox), Delivery::EndOfStream));
     assert_eq!(inbox.stats().dropped, 0);
+    drop(inbox);
     h.join().expect("publisher thread").expect("publisher");
 }
 
@@ -123,6 +124,7 @@ fn watermarks_and_end_of_stream_arrive_in_order<S: Sut>(sut: S) {
     assert!(matches!(next(&mut inbox), Delivery::Watermark(5_000)));
     assert!(matches!(next(&mut inbox), Delivery::EndOfStream));
     assert!(inbox.ended());
+    drop(inbox);
     h.join().expect("thread").expect("publisher");
 }
 
@@ -143,6 +145,9 @@ fn one_mebibyte_is_read_in_place<S: Sut>(sut: S) {
     );
     assert_eq!(t.samples_f32.len(), n);
     assert_eq!(t.samples_f32[n - 1], (n as u64 - 1 + 7) as f32);
+    drop(t);
+    drop(f);
+    drop(inbox);
     h.join().expect("thread").expect("publisher");
 }
 
@@ -241,10 +246,12 @@ fn a_vanished_subscriber_is_reported<S: Sut>(sut: S) {
 
 fn stamps_going_backwards_are_refused<S: Sut>(sut: S) {
     let topic = TopicConfig::new("conf/backwards");
-    let (_inbox, _t, h) = pair(&sut, &topic, 1, |out| {
+    let (mut inbox, _t, h) = pair(&sut, &topic, 1, |out| {
         out.send(&trace(10, 4))?;
         out.send(&trace(3, 4)).map(|_| ())
     });
+    assert!(matches!(next(&mut inbox), Delivery::Data(_)));
+    drop(inbox);
     let err = h.join().expect("thread").expect_err("must refuse");
     assert!(matches!(err, BusError::StampBackwards { seq: 1, .. }), "{err}");
 }
