@@ -32,7 +32,7 @@ use std::path::Path;
 
 pub use error::{GraphError, GraphErrorKind, Location, Position, UnknownErrorKind};
 pub use file::{RecordDecl, ZenohDecl};
-pub use model::{Graph, Host, Input, Node, NodeKind};
+pub use model::{Graph, Host, Input, Node, NodeKind, glob_matches};
 
 use check::Source;
 use positions::{Positions, ScanProblem};

@@ -123,7 +123,7 @@ impl Graph {
 
 /// Whether `text` matches `pattern`, where `*` matches any run of characters (`/` included)
 /// and every other character itself.
-pub(crate) fn glob_matches(pattern: &str, text: &str) -> bool {
+pub fn glob_matches(pattern: &str, text: &str) -> bool {
     let pattern: Vec<char> = pattern.chars().collect();
     let text: Vec<char> = text.chars().collect();
     let (mut p, mut t) = (0, 0);

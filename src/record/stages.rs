@@ -3,6 +3,7 @@
 use std::time::{Duration, Instant};
 
 use super::{ChannelId, Recorder, Recording, RunMetadata};
+use crate::graph::glob_matches;
 use crate::stage::{Input, InputPorts, Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 /// Parameters of [`RecordStage`].
@@ -108,19 +109,6 @@ pub struct ReplayParams {
     pub topics: Vec<String>,
 }
 
-/// `*` matches any run of characters; everything else matches itself.
-pub fn glob_match(pattern: &str, text: &str) -> bool {
-    match pattern.split_once('*') {
-        None => pattern == text,
-        Some((head, rest)) => {
-            let Some(tail) = text.strip_prefix(head) else {
-                return false;
-            };
-            (0..=tail.len()).any(|i| tail.is_char_boundary(i) && glob_match(rest, &tail[i..]))
-        }
-    }
-}
-
 fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
     let rec = Recording::open(params.path.as_ref()).map_err(|e| ParamError {
         path: vec!["path".to_owned()],
@@ -130,7 +118,7 @@ fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
         .topics()
         .into_iter()
         .map(|(topic, ty)| PortSpec::new(topic.trim_start_matches('/'), &ty))
-        .filter(|p| params.topics.iter().any(|g| glob_match(g, &p.name)))
+        .filter(|p| params.topics.iter().any(|g| glob_matches(g, &p.name)))
         .collect())
 }
 
@@ -213,19 +201,4 @@ impl Stage for ReplayStage {
 /// The line the launcher reads to show replay progress.
 fn report_progress(done: usize, total: usize) {
     eprintln!("{} {done} {total}", crate::launch::PROGRESS_TAG);
-}
-
-#[cfg(test)]
-mod tests {
-    use super::glob_match;
-
-    #[test]
-    fn glob_matches_stars() {
-        assert!(glob_match("*", "gen/trace"));
-        assert!(glob_match("gen/*", "gen/trace"));
-        assert!(glob_match("*/trace", "gain/trace"));
-        assert!(!glob_match("gen/*", "gain/trace"));
-        assert!(glob_match("g*n/t*e", "gain/trace"));
-        assert!(!glob_match("gen", "gen/trace"));
-    }
 }
