@@ -345,6 +345,8 @@ pub struct RunReport {
     pub sent: Vec<(String, u64)>,
     /// Callback time percentiles, microseconds: p50, p99, max.
     pub callback_us: [u64; 3],
+    /// Input messages skipped because they did not decode.
+    pub decode_errors: u64,
     /// Wall time, seconds.
     pub wall_s: f64,
     /// Stopped by a signal before the end of its inputs.
@@ -508,6 +510,7 @@ pub fn run_node<S: Stage>(
         let _ = latency.record(us);
     };
 
+    let mut decode_errors = 0u64;
     if inputs.is_empty() {
         while !stopped() {
             let t = Instant::now();
@@ -529,14 +532,23 @@ pub fn run_node<S: Stage>(
                 Step::Deliver(i) => {
                     let Some(frame) = inputs[i].head.take() else { continue };
                     let t = Instant::now();
-                    stage.on_message(
+                    let handled = stage.on_message(
                         Input {
                             id: InputId(i),
                             binding: &spec.inputs[i],
                             frame: &frame,
                         },
                         &mut out,
-                    )?;
+                    );
+                    match handled {
+                        // A payload that does not decode is counted and reported; the
+                        // stream goes on.
+                        Err(StageError::Bus(e @ BusError::Decode { .. })) => {
+                            tracing::warn!(node = %spec.node, "skipped: {e}");
+                            decode_errors += 1;
+                        }
+                        other => other?,
+                    }
                     record(t);
                 }
                 Step::Wait(j) => {
@@ -582,6 +594,7 @@ pub fn run_node<S: Stage>(
             latency.value_at_quantile(0.99),
             latency.max(),
         ],
+        decode_errors,
         wall_s: started.elapsed().as_secs_f64(),
         interrupted,
     };
@@ -590,6 +603,7 @@ pub fn run_node<S: Stage>(
         received = ?report.received,
         sent = ?report.sent,
         dropped = ?report.dropped,
+        decode_errors = report.decode_errors,
         callback_p50_us = report.callback_us[0],
         callback_p99_us = report.callback_us[1],
         callback_max_us = report.callback_us[2],

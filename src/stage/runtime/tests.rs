@@ -149,3 +149,45 @@ fn feedback_input_is_seen_delayed_and_ties_go_to_feedback() {
     assert_eq!(fed, (0..=25).map(|i| i * 15).collect::<Vec<i64>>());
     assert_eq!(run_merge(8, Some(5)), seen);
 }
+
+#[test]
+fn a_payload_that_does_not_decode_is_counted_and_skipped() {
+    let stop = Arc::new(AtomicBool::new(false));
+    let bus = InProcess::new(stop.clone());
+    let spec = NodeSpec {
+        run_id: "t".to_owned(),
+        prefix: "t".to_owned(),
+        node: "collect".to_owned(),
+        stage: "collect".to_owned(),
+        params: serde_json::Value::Null,
+        inputs: vec![binding("a", None)],
+        outputs: Vec::new(),
+        handshake_timeout_ms: 5000,
+    };
+    let b = bus.clone();
+    let source = std::thread::spawn(move || {
+        let mut out = Outbox::new(
+            b.publisher(&binding("a", None).topic_config()).expect("publisher"),
+            WheelOdometry::TYPE_NAME,
+            1,
+        );
+        let never = || false;
+        bus::wait_for_subscribers(out.publisher(), 1, Duration::from_secs(5), &never).expect("handshake");
+        let good = |s: i64| WheelOdometry {
+            header: Header::new(s, "wheel"),
+            ..WheelOdometry::default()
+        };
+        out.send(&good(1)).expect("send");
+        out.send_bytes(2, &[0, 1, 0, 0, 0xff]).expect("send junk");
+        out.send(&good(3)).expect("send");
+        out.end().expect("end");
+    });
+    SEEN.with(|s| s.borrow_mut().clear());
+    let report = run_node::<Collect>(&spec, &bus, &stop).expect("a bad payload does not stop the stage");
+    source.join().expect("source");
+    assert_eq!(report.decode_errors, 1);
+    assert_eq!(
+        SEEN.with(|s| s.borrow().iter().map(|(_, t)| *t).collect::<Vec<_>>()),
+        vec![1, 3]
+    );
+}
