@@ -86,6 +86,60 @@ fn toy_graph_is_deterministic_and_replays_identically() {
 }
 
 #[test]
+fn a_users_own_executable_speaks_the_same_bus() {
+    let exec = Path::new(GPRFLOW).with_file_name("toy_gain_exec");
+    assert!(exec.exists(), "build the toy stage's binary first: {}", exec.display());
+    let dir = tempfile::tempdir().expect("tempdir");
+    let builtin = dir.path().join("builtin.mcap");
+    let user = dir.path().join("user.mcap");
+    let o = gprflow(&[
+        "launch",
+        "graphs/toy.yaml",
+        "--set",
+        "count=300",
+        "--record",
+        builtin.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = gprflow(&[
+        "launch",
+        "graphs/toy-exec.yaml",
+        "--set",
+        "count=300",
+        "--set",
+        &format!("exec={}", exec.display()),
+        "--record",
+        user.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        payloads(&user),
+        payloads(&builtin),
+        "the exec stage must behave as the built-in one"
+    );
+}
+
+#[test]
+fn sigint_stops_every_stage_and_finalises_the_recording() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("interrupted.mcap");
+    let run = LongRun::start(&rec);
+    run.pid_of("gain");
+    std::thread::sleep(Duration::from_millis(500));
+    kill(run.child.id(), "-INT");
+    let id = run.id.clone();
+    let (code, err) = run.finish();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(pids_with(&format!("gprflow-{id}/")).is_empty(), "orphans after SIGINT");
+    assert!(gprflow::launch::leftover_resources(&format!("gf{id}_")).is_empty());
+    let recorded = payloads(&rec);
+    assert!(
+        recorded.get("/gen/trace").is_some_and(|v| !v.is_empty()),
+        "the recording is complete and holds data"
+    );
+}
+
+#[test]
 fn python_mcap_reader_decodes_every_field_alike() {
     let python = repo().join(".venv-peers/bin/python");
     assert!(
@@ -138,67 +192,118 @@ fn pids_with(needle: &str) -> Vec<u32> {
     out
 }
 
-/// Starts a long toy run, SIGKILLs `victim` once it runs, and returns the launcher's output.
-fn kill_mid_run(victim: &str, record: &Path, after: Duration) -> (Output, String) {
-    let child = Command::new(GPRFLOW)
-        .current_dir(repo())
-        .args([
-            "launch",
-            "graphs/toy.yaml",
-            "--set",
-            "count=100000000",
-            "--record",
-            record.to_str().expect("utf8"),
-        ])
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("launch starts");
-    let needle = format!("{victim}.json");
-    let start = Instant::now();
-    let victim_pid = loop {
-        let found: Vec<u32> = pids_with(&needle).into_iter().filter(|p| *p != child.id()).collect();
-        if let Some(p) = found.first() {
-            break *p;
+/// A long toy run whose launcher's stderr is collected while it runs.
+struct LongRun {
+    child: std::process::Child,
+    id: String,
+    lines: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    reader: std::thread::JoinHandle<()>,
+}
+
+impl LongRun {
+    fn start(record: &Path) -> Self {
+        use std::io::BufRead;
+        let mut child = Command::new(GPRFLOW)
+            .current_dir(repo())
+            .args([
+                "launch",
+                "graphs/toy.yaml",
+                "--set",
+                "count=100000000",
+                "--record",
+                record.to_str().expect("utf8"),
+            ])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("launch starts");
+        let lines = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let stderr = child.stderr.take().expect("stderr");
+        let sink = lines.clone();
+        let reader = std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+                sink.lock().expect("lines").push(line);
+            }
+        });
+        let start = Instant::now();
+        let id = loop {
+            let found = lines
+                .lock()
+                .expect("lines")
+                .iter()
+                .find(|l| l.contains(" run "))
+                .map(|l| run_id(l));
+            if let Some(id) = found {
+                break id;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "the launcher never named its run"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        };
+        Self {
+            child,
+            id,
+            lines,
+            reader,
         }
-        assert!(start.elapsed() < Duration::from_secs(20), "{victim} never started");
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    std::thread::sleep(after);
-    let spec_dir = pids_with(&needle)
-        .first()
-        .and_then(|p| std::fs::read(format!("/proc/{p}/cmdline")).ok())
-        .map(|c| String::from_utf8_lossy(&c).into_owned())
-        .and_then(|c| {
-            c.split('\0')
-                .find(|a| a.ends_with(&needle))
-                .map(|a| a.trim_end_matches(&needle).to_owned())
-        })
-        .expect("spec dir");
-    let _ = Command::new("kill").args(["-9", &victim_pid.to_string()]).status();
-    let out = child.wait_with_output().expect("launcher ends");
-    (out, spec_dir)
+    }
+
+    /// Pid of this run's process for `node`, once it runs.
+    fn pid_of(&self, node: &str) -> u32 {
+        let needle = format!("gprflow-{}/{node}.json", self.id);
+        let start = Instant::now();
+        loop {
+            if let Some(p) = pids_with(&needle).into_iter().find(|p| *p != self.child.id()) {
+                return p;
+            }
+            assert!(start.elapsed() < Duration::from_secs(20), "{node} never started");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Waits for the launcher; returns its exit code and stderr.
+    fn finish(self) -> (Option<i32>, String) {
+        let status = self.child.wait_with_output().expect("launcher ends").status;
+        self.reader.join().expect("stderr reader");
+        let text = self.lines.lock().expect("lines").join("\n");
+        (status.code(), text)
+    }
+
+    /// The run's processes still alive.
+    fn survivors(&self) -> Vec<u32> {
+        pids_with(&format!("gprflow-{}/", self.id))
+    }
+}
+
+fn kill(pid: u32, signal: &str) {
+    let _ = Command::new("kill").args([signal, &pid.to_string()]).status();
 }
 
 #[test]
 fn killed_stage_stops_the_run_and_leaves_nothing_behind() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("killed.mcap");
-    let (out, spec_dir) = kill_mid_run("gain", &rec, Duration::from_millis(300));
-    let err = stderr(&out);
-    assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("node `gain` failed (killed by signal 9)"), "{err}");
-    // no orphan processes of the run
+    let run = LongRun::start(&rec);
+    let gain = run.pid_of("gain");
+    std::thread::sleep(Duration::from_millis(300));
+    kill(gain, "-9");
+    let id = run.id.clone();
     let start = Instant::now();
-    while !pids_with(&spec_dir).is_empty() {
-        assert!(
-            start.elapsed() < Duration::from_secs(5),
-            "orphans: {:?}",
-            pids_with(&spec_dir)
-        );
+    let (code, err) = loop {
+        // the launcher must end on its own, having stopped the others
+        if run.survivors().is_empty() || start.elapsed() > Duration::from_secs(15) {
+            break run.finish();
+        }
         std::thread::sleep(Duration::from_millis(50));
-    }
-    // no stale shared memory or iceoryx2 files of the run
-    let id = run_id(&err);
+    };
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("node `gain` failed (killed by signal 9)"), "{err}");
+    assert!(
+        pids_with(&format!("gprflow-{id}/")).is_empty(),
+        "orphans: {:?}",
+        pids_with(&format!("gprflow-{id}/"))
+    );
     let left = gprflow::launch::leftover_resources(&format!("gf{id}_"));
     assert!(left.is_empty(), "stale resources: {left:?}");
     // the recorder was stopped cleanly: its file is complete and readable
@@ -209,9 +314,13 @@ fn killed_stage_stops_the_run_and_leaves_nothing_behind() {
 fn recording_cut_off_by_sigkill_gives_back_every_complete_chunk() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("cut.mcap");
+    let run = LongRun::start(&rec);
+    let recorder = run.pid_of("__record");
     // the recorder closes a chunk at least every second: 2.5 s guarantees complete chunks
-    let (out, _) = kill_mid_run("__record", &rec, Duration::from_millis(2500));
-    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    std::thread::sleep(Duration::from_millis(2500));
+    kill(recorder, "-9");
+    let (code, err) = run.finish();
+    assert_eq!(code, Some(1), "{err}");
     let inspect = gprflow(&["inspect", rec.to_str().expect("utf8"), "--json"]);
     assert_eq!(inspect.status.code(), Some(1), "a cut-off file is reported");
     let summary: serde_json::Value = serde_json::from_slice(&inspect.stdout).expect("json");

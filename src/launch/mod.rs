@@ -159,19 +159,16 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
         for port in &node.outputs {
             let topic = format!("{}/{}", node.name, port.name);
             let consumers = graph.consumers(&node.name, &port.name);
+            let latest_only = consumers.iter().any(|(_, i)| i.latest_only);
             let record = records(&topic);
             let required =
                 consumers.iter().filter(|(_, i)| i.feedback_delay_ns.is_none()).count() + usize::from(record);
             if record {
-                recorded.push((
-                    topic.clone(),
-                    port.msg_type.clone(),
-                    topic_latest_only(graph, &node.name, &port.name),
-                ));
+                recorded.push((topic.clone(), port.msg_type.clone(), latest_only));
             }
             outputs.push(OutputBinding {
                 name: port.name.clone(),
-                latest_only: topic_latest_only(graph, &node.name, &port.name),
+                latest_only,
                 topic,
                 msg_type: port.msg_type.clone(),
                 subscribers: consumers.len() + usize::from(record),
