@@ -1,6 +1,9 @@
 //! End-to-end tests: real graphs launched as real processes over iceoryx2, recorded to MCAP,
 //! replayed, killed mid-run, and read back by a peer MCAP reader.
 
+// Tests spawn short-lived helper threads; names would add nothing.
+#![allow(clippy::disallowed_methods)]
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

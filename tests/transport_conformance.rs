@@ -2,6 +2,9 @@
 //! in-process transport. Each case runs a publisher and a subscriber on two threads, each
 //! with its own transport handle, as two processes would.
 
+// Tests spawn short-lived helper threads; names would add nothing.
+#![allow(clippy::disallowed_methods)]
+
 use std::borrow::Cow;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;

@@ -1,6 +1,9 @@
 //! The stamp-ordered merge, driven through the in-process transport by source threads
 //! whose timing is jittered: the delivery order must not depend on it.
 
+// Tests spawn short-lived helper threads; names would add nothing.
+#![allow(clippy::disallowed_methods)]
+
 use std::cell::RefCell;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
