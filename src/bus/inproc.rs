@@ -16,7 +16,9 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 struct Queue {
-    frames: Mutex<VecDeque<(FrameHeader, Arc<[u8]>)>>,
+    /// The frames, and whether the subscriber is still attached (cleared on drop, under the
+    /// same lock, so a publisher knows exactly which frames reached a live subscriber).
+    frames: Mutex<(VecDeque<(FrameHeader, Arc<[u8]>)>, bool)>,
     /// Signalled on push (wakes the subscriber) and on pop (wakes a waiting publisher).
     changed: Condvar,
     capacity: usize,
@@ -82,7 +84,7 @@ impl Transport for InProcess {
     fn subscriber(&self, topic: &TopicConfig) -> Result<Box<dyn Subscriber>> {
         let state = self.topic(topic)?;
         let queue = Arc::new(Queue {
-            frames: Mutex::new(VecDeque::with_capacity(topic.buffer)),
+            frames: Mutex::new((VecDeque::with_capacity(topic.buffer), true)),
             changed: Condvar::new(),
             capacity: topic.buffer,
         });
@@ -123,9 +125,20 @@ impl Publisher for InProcPub {
         let bytes: Vec<u8> = buf.into_iter().map(|b| unsafe { b.assume_init() }).collect();
         let payload: Arc<[u8]> = bytes.into();
         let queues: Vec<Arc<Queue>> = lock(&self.state.subscribers).iter().map(|(_, q)| q.clone()).collect();
+        let mut reached = 0;
         for queue in &queues {
-            let mut frames = lock(&queue.frames);
-            while frames.len() >= queue.capacity {
+            let mut guard = lock(&queue.frames);
+            loop {
+                let (frames, attached) = &mut *guard;
+                if !*attached {
+                    break; // the subscriber left: not reached
+                }
+                if frames.len() < queue.capacity {
+                    frames.push_back((header, payload.clone()));
+                    reached += 1;
+                    queue.changed.notify_all();
+                    break;
+                }
                 if self.latest_only {
                     frames.pop_front();
                     continue;
@@ -133,18 +146,14 @@ impl Publisher for InProcPub {
                 if self.stop.load(Ordering::Relaxed) {
                     return Err(BusError::Shutdown);
                 }
-                frames = queue
+                guard = queue
                     .changed
-                    .wait_timeout(frames, POLL)
+                    .wait_timeout(guard, POLL)
                     .unwrap_or_else(PoisonError::into_inner)
                     .0;
             }
-            frames.push_back((header, payload.clone()));
-            queue.changed.notify_all();
         }
-        // Count the subscribers still attached: one that left while we waited was not reached.
-        let attached = lock(&self.state.subscribers).len();
-        Ok(queues.len().min(attached))
+        Ok(reached)
     }
 
     fn subscriber_count(&self) -> usize {
@@ -162,6 +171,8 @@ struct InProcSub {
 impl Drop for InProcSub {
     fn drop(&mut self) {
         lock(&self.state.subscribers).retain(|(id, _)| *id != self.id);
+        lock(&self.queue.frames).1 = false;
+        self.queue.changed.notify_all();
     }
 }
 
@@ -171,7 +182,7 @@ impl Subscriber for InProcSub {
     }
 
     fn try_receive(&mut self) -> Result<Option<Frame>> {
-        let front = lock(&self.queue.frames).pop_front();
+        let front = lock(&self.queue.frames).0.pop_front();
         self.queue.changed.notify_all();
         Ok(front.map(|(header, payload)| Frame {
             header,
@@ -185,7 +196,7 @@ impl Subscriber for InProcSub {
 
     fn wait(&mut self, timeout: Duration) -> Result<()> {
         let frames = lock(&self.queue.frames);
-        if frames.is_empty() {
+        if frames.0.is_empty() {
             let _ = self
                 .queue
                 .changed
