@@ -150,6 +150,7 @@ fn one_mebibyte_is_read_in_place<S: Sut>(sut: S) {
     assert_eq!(t.samples_f32[n - 1], (n as u64 - 1 + 7) as f32);
     drop(t);
     drop(f);
+    assert!(matches!(next(&mut inbox), Delivery::EndOfStream));
     drop(inbox);
     h.join().expect("thread").expect("publisher");
 }
