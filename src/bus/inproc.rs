@@ -15,10 +15,15 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
+/// A subscriber's queue and whether the subscriber is still attached (cleared on drop,
+/// under the same lock, so a publisher knows exactly which frames reached a live subscriber).
+struct QueueState {
+    frames: VecDeque<(FrameHeader, Arc<[u8]>)>,
+    attached: bool,
+}
+
 struct Queue {
-    /// The frames, and whether the subscriber is still attached (cleared on drop, under the
-    /// same lock, so a publisher knows exactly which frames reached a live subscriber).
-    frames: Mutex<(VecDeque<(FrameHeader, Arc<[u8]>)>, bool)>,
+    frames: Mutex<QueueState>,
     /// Signalled on push (wakes the subscriber) and on pop (wakes a waiting publisher).
     changed: Condvar,
     capacity: usize,
@@ -84,7 +89,10 @@ impl Transport for InProcess {
     fn subscriber(&self, topic: &TopicConfig) -> Result<Box<dyn Subscriber>> {
         let state = self.topic(topic)?;
         let queue = Arc::new(Queue {
-            frames: Mutex::new((VecDeque::with_capacity(topic.buffer), true)),
+            frames: Mutex::new(QueueState {
+                frames: VecDeque::with_capacity(topic.buffer),
+                attached: true,
+            }),
             changed: Condvar::new(),
             capacity: topic.buffer,
         });
@@ -129,7 +137,7 @@ impl Publisher for InProcPub {
         for queue in &queues {
             let mut guard = lock(&queue.frames);
             loop {
-                let (frames, attached) = &mut *guard;
+                let QueueState { frames, attached } = &mut *guard;
                 if !*attached {
                     break; // the subscriber left: not reached
                 }
@@ -171,7 +179,7 @@ struct InProcSub {
 impl Drop for InProcSub {
     fn drop(&mut self) {
         lock(&self.state.subscribers).retain(|(id, _)| *id != self.id);
-        lock(&self.queue.frames).1 = false;
+        lock(&self.queue.frames).attached = false;
         self.queue.changed.notify_all();
     }
 }
@@ -182,7 +190,7 @@ impl Subscriber for InProcSub {
     }
 
     fn try_receive(&mut self) -> Result<Option<Frame>> {
-        let front = lock(&self.queue.frames).0.pop_front();
+        let front = lock(&self.queue.frames).frames.pop_front();
         self.queue.changed.notify_all();
         Ok(front.map(|(header, payload)| Frame {
             header,
@@ -196,7 +204,7 @@ impl Subscriber for InProcSub {
 
     fn wait(&mut self, timeout: Duration) -> Result<()> {
         let frames = lock(&self.queue.frames);
-        if frames.0.is_empty() {
+        if frames.frames.is_empty() {
             let _ = self
                 .queue
                 .changed
