@@ -6,5 +6,7 @@ cd "$(dirname "$0")/../.."
 tools/peer/setup-venv.sh
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
+# end-to-end tests also run the workspace's other binaries (a user's exec stage)
+cargo build --workspace --bins
 cargo nextest run --workspace --no-fail-fast
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
