@@ -38,6 +38,19 @@ fn payloads(path: &Path) -> BTreeMap<String, Vec<Vec<u8>>> {
     out
 }
 
+/// Runs graphs/toy.yaml with `count` traces, recorded to `record`, and checks it succeeded.
+fn record_toy(count: u32, record: &Path) {
+    let o = gprflow(&[
+        "launch",
+        "graphs/toy.yaml",
+        "--set",
+        &format!("count={count}"),
+        "--record",
+        record.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "launch failed: {}", stderr(&o));
+}
+
 fn run_id(stderr: &str) -> String {
     stderr
         .lines()
@@ -52,15 +65,7 @@ fn toy_graph_is_deterministic_and_replays_identically() {
     let a = dir.path().join("a.mcap");
     let b = dir.path().join("b.mcap");
     for f in [&a, &b] {
-        let o = gprflow(&[
-            "launch",
-            "graphs/toy.yaml",
-            "--set",
-            "count=500",
-            "--record",
-            f.to_str().expect("utf8"),
-        ]);
-        assert!(o.status.success(), "launch failed: {}", stderr(&o));
+        record_toy(500, f);
     }
     let pa = payloads(&a);
     assert_eq!(pa.keys().collect::<Vec<_>>(), ["/gain/trace", "/gen/trace"]);
@@ -95,15 +100,7 @@ fn a_users_own_executable_speaks_the_same_bus() {
     let dir = tempfile::tempdir().expect("tempdir");
     let builtin = dir.path().join("builtin.mcap");
     let user = dir.path().join("user.mcap");
-    let o = gprflow(&[
-        "launch",
-        "graphs/toy.yaml",
-        "--set",
-        "count=300",
-        "--record",
-        builtin.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    record_toy(300, &builtin);
     let o = gprflow(&[
         "launch",
         "graphs/toy-exec.yaml",
@@ -396,15 +393,7 @@ fn python_mcap_reader_decodes_every_message_type() {
 fn python_mcap_reader_decodes_every_field_alike() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("peer.mcap");
-    let o = gprflow(&[
-        "launch",
-        "graphs/toy.yaml",
-        "--set",
-        "count=300",
-        "--record",
-        rec.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    record_toy(300, &rec);
     peer_check(&rec, "600 messages on 2 topics");
 }
 

@@ -502,8 +502,8 @@ pub fn inspect(rec: &Recording) -> Inspection {
         if let Some(prev) = last_seq.insert(m.topic.to_owned(), m.sequence) {
             t.seq_gaps += u64::from(m.sequence.wrapping_sub(prev).saturating_sub(1));
         }
-        if msg::message_type(m.msg_type).is_some()
-            && let Err(e) = msg::decode_to_json(m.msg_type, m.data)
+        if let Some(ty) = msg::message_type(m.msg_type)
+            && let Err(e) = ty.decode_to_json(m.data)
         {
             t.decode_errors += 1;
             if errors.len() < 10 {

@@ -83,19 +83,24 @@ fn source(
     })
 }
 
-fn run_merge(jitter: u64, delay_b: Option<i64>) -> Vec<(String, i64)> {
-    let stop = Arc::new(AtomicBool::new(false));
-    let bus = InProcess::new(stop.clone());
-    let spec = NodeSpec {
+/// The spec of the test sink reading `inputs`.
+fn collect_spec(inputs: Vec<InputBinding>) -> NodeSpec {
+    NodeSpec {
         run_id: "t".to_owned(),
         prefix: "t".to_owned(),
         node: "collect".to_owned(),
         stage: "collect".to_owned(),
         params: serde_json::Value::Null,
-        inputs: vec![binding("a", None), binding("b", delay_b)],
+        inputs,
         outputs: Vec::new(),
         handshake_timeout_ms: 5000,
-    };
+    }
+}
+
+fn run_merge(jitter: u64, delay_b: Option<i64>) -> Vec<(String, i64)> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let bus = InProcess::new(stop.clone());
+    let spec = collect_spec(vec![binding("a", None), binding("b", delay_b)]);
     // a: every 10 ns; b: every 15 ns, with shared stamps (ties) at multiples of 30
     let a = source(bus.clone(), "a", (0..40).map(|i| i * 10).collect(), jitter, 1);
     let b_required = usize::from(delay_b.is_none());
@@ -157,16 +162,7 @@ fn feedback_input_is_seen_delayed_and_ties_go_to_feedback() {
 fn a_payload_that_does_not_decode_is_counted_and_skipped() {
     let stop = Arc::new(AtomicBool::new(false));
     let bus = InProcess::new(stop.clone());
-    let spec = NodeSpec {
-        run_id: "t".to_owned(),
-        prefix: "t".to_owned(),
-        node: "collect".to_owned(),
-        stage: "collect".to_owned(),
-        params: serde_json::Value::Null,
-        inputs: vec![binding("a", None)],
-        outputs: Vec::new(),
-        handshake_timeout_ms: 5000,
-    };
+    let spec = collect_spec(vec![binding("a", None)]);
     let b = bus.clone();
     let source = std::thread::spawn(move || {
         let mut out = Outbox::new(
