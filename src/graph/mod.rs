@@ -97,6 +97,23 @@ fn scan_error(file: &Path, problem: ScanProblem) -> GraphError {
 
 /// A deserialiser error: the file is YAML, but not a graph file.
 fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphError {
+    let (at, message) = locate(source.file, source.positions, error);
+    GraphError::Structure { at, message }
+}
+
+/// Where a YAML deserialiser error is (file, line, column, key path) and its message, for
+/// any YAML file read with `serde_saphyr` (graph files, simulator scenarios).
+pub fn locate_yaml_error(file: &Path, text: &str, error: &serde_saphyr::Error) -> (Box<Location>, String) {
+    match Positions::scan(text) {
+        Ok(positions) => locate(file, &positions, error),
+        Err(problem) => match scan_error(file, problem) {
+            GraphError::Syntax { at, message } => (at, message),
+            other => (location(file, None, String::new()), other.to_string()),
+        },
+    }
+}
+
+fn locate(file: &Path, positions: &Positions, error: &serde_saphyr::Error) -> (Box<Location>, String) {
     let error = error.without_snippet();
     let position = error
         .location()
@@ -107,15 +124,13 @@ fn structure_error(source: &Source<'_>, error: &serde_saphyr::Error) -> GraphErr
         });
     let missing_field = matches!(error, serde_saphyr::Error::SerdeMissingField { .. });
     let key_path = position
-        .and_then(|position| source.positions.path_at(position, missing_field))
+        .and_then(|position| positions.path_at(position, missing_field))
         .map(|path| path.join("."))
         .unwrap_or_default();
     let message = serde_saphyr::DefaultMessageFormatter.format_message(error);
-    GraphError::Structure {
-        at: location(source.file, position, key_path),
-        // The message may quote the file: keep control characters out of terminals.
-        message: message.chars().map(|c| if c.is_control() { ' ' } else { c }).collect(),
-    }
+    // The message may quote the file: keep control characters out of terminals.
+    let message = message.chars().map(|c| if c.is_control() { ' ' } else { c }).collect();
+    (location(file, position, key_path), message)
 }
 
 fn location(file: &Path, position: Option<Position>, key_path: String) -> Box<Location> {

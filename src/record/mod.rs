@@ -114,6 +114,10 @@ pub struct Recorder {
     schemas: BTreeMap<String, u16>,
     last_flush: Instant,
     finished: bool,
+    /// `None`: a live recording (wall-clock publish times, chunks closed every second).
+    /// `Some(t)`: a reproducible one (publish time = log time, attachments stamped `t`,
+    /// chunks closed by size only), so the same messages give the same bytes.
+    reproducible_at: Option<u64>,
 }
 
 impl std::fmt::Debug for Recorder {
@@ -134,6 +138,21 @@ impl Recorder {
     /// # Errors
     /// File or MCAP errors.
     pub fn create(path: &Path, meta: &RunMetadata) -> Result<Self> {
+        Self::create_inner(path, meta, None)
+    }
+
+    /// Like [`create`](Self::create), but the file depends only on what is written: publish
+    /// times equal log times, attachments are stamped `stamp_ns` and chunks close by size
+    /// alone. For recordings made by programs (the simulator), where the same input must
+    /// give the same bytes.
+    ///
+    /// # Errors
+    /// File or MCAP errors.
+    pub fn create_reproducible(path: &Path, meta: &RunMetadata, stamp_ns: u64) -> Result<Self> {
+        Self::create_inner(path, meta, Some(stamp_ns))
+    }
+
+    fn create_inner(path: &Path, meta: &RunMetadata, reproducible_at: Option<u64>) -> Result<Self> {
         let file = File::create(path).map_err(|source| RecordError::Io {
             path: path.to_owned(),
             source,
@@ -165,7 +184,7 @@ impl Recorder {
                 metadata: fields,
             })
             .map_err(mcap_err)?;
-        let t = now_ns();
+        let t = reproducible_at.unwrap_or_else(now_ns);
         for (name, media_type, data) in [
             ("graph.yaml", "application/yaml", &meta.graph_text),
             ("nodes.json", "application/json", &meta.nodes_json),
@@ -189,6 +208,7 @@ impl Recorder {
             schemas: BTreeMap::new(),
             last_flush: Instant::now(),
             finished: false,
+            reproducible_at,
         })
     }
 
@@ -238,16 +258,50 @@ impl Recorder {
             // MCAP sequences are 32-bit; bus sequence numbers wrap there
             sequence: (seq & u64::from(u32::MAX)) as u32,
             log_time: u64::try_from(stamp_ns).unwrap_or(0),
-            publish_time: now_ns(),
+            publish_time: if self.reproducible_at.is_some() {
+                u64::try_from(stamp_ns).unwrap_or(0)
+            } else {
+                now_ns()
+            },
         };
         self.writer
             .write_to_known_channel(&header, payload)
             .map_err(|e| self.mcap_err(e))?;
-        if self.last_flush.elapsed() >= FLUSH_EVERY {
+        if self.reproducible_at.is_none() && self.last_flush.elapsed() >= FLUSH_EVERY {
             self.writer.flush().map_err(|e| self.mcap_err(e))?;
             self.last_flush = Instant::now();
         }
         Ok(())
+    }
+
+    /// Adds a named metadata record (string key-value pairs).
+    ///
+    /// # Errors
+    /// MCAP errors.
+    pub fn write_metadata(&mut self, name: &str, fields: BTreeMap<String, String>) -> Result<()> {
+        self.writer
+            .write_metadata(&mcap::records::Metadata {
+                name: name.to_owned(),
+                metadata: fields,
+            })
+            .map_err(|e| self.mcap_err(e))
+    }
+
+    /// Adds an attachment (a file carried inside the recording).
+    ///
+    /// # Errors
+    /// MCAP errors.
+    pub fn attach(&mut self, name: &str, media_type: &str, data: &[u8]) -> Result<()> {
+        let t = self.reproducible_at.unwrap_or_else(now_ns);
+        self.writer
+            .attach(&mcap::Attachment {
+                log_time: t,
+                create_time: t,
+                name: name.to_owned(),
+                media_type: media_type.to_owned(),
+                data: std::borrow::Cow::Borrowed(data),
+            })
+            .map_err(|e| self.mcap_err(e))
     }
 
     /// Writes the summary and footer.
