@@ -2,6 +2,7 @@
 //! commands, so that `main.rs` only parses arguments.
 
 pub mod commands;
+pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};

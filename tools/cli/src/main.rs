@@ -77,6 +77,32 @@ enum Command {
     ///
     /// Example: gprflow stages
     Stages,
+    /// Simulate a run of a scenario (world, trajectory, sensors) into a recording.
+    ///
+    /// Example: gprflow sim tools/sim/scenarios/basement.yaml -o basement.mcap --run loop
+    Sim {
+        /// Scenario file (YAML; see tools/sim/scenarios/REFERENCE.yaml).
+        #[arg(required_unless_present = "schema")]
+        scenario: Option<PathBuf>,
+        /// MCAP file to write.
+        #[arg(short, long, required_unless_present = "schema")]
+        output: Option<PathBuf>,
+        /// Which of the scenario's runs (default: the first).
+        #[arg(long)]
+        run: Option<String>,
+        /// Output format.
+        #[arg(long, value_enum, default_value = "mcap")]
+        format: gprflow_cli::sim::SimFormat,
+        /// Stop after this many seconds of sensor time.
+        #[arg(long, value_name = "SECONDS")]
+        duration: Option<f64>,
+        /// Print the JSON schema of scenario files and exit.
+        #[arg(long)]
+        schema: bool,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check a graph file without running it (errors name file, line and key).
     ///
     /// Example: gprflow check graphs/toy.yaml
@@ -122,6 +148,23 @@ fn main() -> ExitCode {
         Command::Recover { file, output } => commands::recover(&file, &output),
         Command::Stages => commands::stages(),
         Command::Check { graph, set } => commands::check(&graph, &set),
+        Command::Sim {
+            scenario,
+            output,
+            run,
+            format,
+            duration,
+            schema,
+            json,
+        } => gprflow_cli::sim::sim(&gprflow_cli::sim::SimArgs {
+            scenario,
+            output,
+            run,
+            format,
+            duration_s: duration,
+            schema,
+            json,
+        }),
     };
     match result {
         Ok(code) => code,

@@ -62,13 +62,16 @@ impl ImpulseGpr {
         let n = self.buffer.len() as isize;
         let k_lo = (((tau_ns - self.half_width_ns - t_first_ns) / dt).ceil() as isize).max(0);
         let k_hi = (((tau_ns + self.half_width_ns - t_first_ns) / dt).floor() as isize).min(n - 1);
-        let step = dt / OVERSAMPLE as f64;
-        for k in k_lo..=k_hi {
-            let t = t_first_ns + k as f64 * dt - tau_ns + self.half_width_ns;
-            let i = (t / step).round() as usize;
-            if let (Some(w), Some(b)) = (self.table.get(i), self.buffer.get_mut(k as usize)) {
-                *b += amplitude * w;
-            }
+        if k_hi < k_lo {
+            return;
+        }
+        // table index of sample k_lo; each later sample is OVERSAMPLE entries further on
+        let t0 = t_first_ns + k_lo as f64 * dt - tau_ns + self.half_width_ns;
+        let first = (t0 * OVERSAMPLE as f64 / dt + 0.5).max(0.0) as usize;
+        let samples = &mut self.buffer[k_lo as usize..=k_hi as usize];
+        let taps = self.table.get(first..).unwrap_or(&[]).iter().step_by(OVERSAMPLE);
+        for (b, w) in samples.iter_mut().zip(taps) {
+            *b += amplitude * w;
         }
     }
 

@@ -19,8 +19,17 @@ type V2 = Vector2<f64>;
 /// A piece of path.
 #[derive(Debug, Clone, Copy)]
 enum Piece {
-    Line { start: V2, heading_rad: f64, length_m: f64 },
-    Arc { center: V2, radius_m: f64, start_angle_rad: f64, sweep_rad: f64 },
+    Line {
+        start: V2,
+        heading_rad: f64,
+        length_m: f64,
+    },
+    Arc {
+        center: V2,
+        radius_m: f64,
+        start_angle_rad: f64,
+        sweep_rad: f64,
+    },
 }
 
 /// A point of a path: position, tangent heading, signed curvature (left turns positive).
@@ -35,17 +44,15 @@ impl Piece {
     fn length(&self) -> f64 {
         match *self {
             Piece::Line { length_m, .. } => length_m,
-            Piece::Arc { radius_m, sweep_rad, .. } => radius_m * sweep_rad.abs(),
+            Piece::Arc {
+                radius_m, sweep_rad, ..
+            } => radius_m * sweep_rad.abs(),
         }
     }
 
     fn at(&self, s: f64) -> PathPoint {
         match *self {
-            Piece::Line {
-                start,
-                heading_rad,
-                ..
-            } => PathPoint {
+            Piece::Line { start, heading_rad, .. } => PathPoint {
                 position: start + s * V2::new(heading_rad.cos(), heading_rad.sin()),
                 heading_rad,
                 curvature_per_m: 0.0,
@@ -267,7 +274,10 @@ impl Motion {
     /// The state at `t` seconds into the run (clamped to the run).
     pub fn at(&self, t: f64) -> Kinematics {
         let t = t.clamp(0.0, self.duration_s);
-        let i = self.phases.partition_point(|(start, _, _)| *start <= t).saturating_sub(1);
+        let i = self
+            .phases
+            .partition_point(|(start, _, _)| *start <= t)
+            .saturating_sub(1);
         let (start, duration, phase) = &self.phases[i];
         let tau = (t - start).min(*duration);
         // planar part: position, heading, yaw rate, velocity, acceleration, odometer
@@ -307,6 +317,7 @@ impl Motion {
                 )
             }
         };
+        let yaw = wrap_angle(yaw);
         let odometer_m = odo.unwrap_or_else(|| self.odometer_before(i));
         let (roll, roll_rate, _) = self.roll.eval(t);
         let (pitch, pitch_rate, _) = self.pitch.eval(t);
@@ -555,7 +566,8 @@ fn build(trajectory: &Trajectory, accel: f64, plan: &mut Planner) {
             let mut pieces = Vec::new();
             for row in 0..rows {
                 let forward = row % 2 == 0;
-                let start = o + f64::from(row) * spacing_m * left + if forward { V2::zeros() } else { length_m * along };
+                let start =
+                    o + f64::from(row) * spacing_m * left + if forward { V2::zeros() } else { length_m * along };
                 let heading = if forward { h } else { h + PI };
                 pieces.push(Piece::Line {
                     start,
@@ -757,7 +769,10 @@ pub(crate) fn validate(t: &Trajectory) -> Result<(), (String, String)> {
             positive("speed_kmh", *speed_kmh)?;
             positive("bend_radius_m", *bend_radius_m)?;
             if lap_length_m.is_nan() || *lap_length_m <= TAU * bend_radius_m {
-                return Err(("lap_length_m".into(), "must exceed the two bends (2 pi bend_radius_m)".into()));
+                return Err((
+                    "lap_length_m".into(),
+                    "must exceed the two bends (2 pi bend_radius_m)".into(),
+                ));
             }
             if lateral_offset_m.is_nan() || lateral_offset_m.abs() >= *bend_radius_m {
                 return Err(("lateral_offset_m".into(), "must be smaller than the bend radius".into()));
@@ -804,12 +819,20 @@ mod tests {
         while t < m.duration_s() - 0.01 {
             let (a, k, b) = (m.at(t - h), m.at(t), m.at(t + h));
             let v_num = (b.position_m - a.position_m) / (2.0 * h);
-            assert!((v_num - k.velocity_mps).norm() < 1e-3, "velocity at {t}: {v_num} vs {}", k.velocity_mps);
+            assert!(
+                (v_num - k.velocity_mps).norm() < 1e-3,
+                "velocity at {t}: {v_num} vs {}",
+                k.velocity_mps
+            );
             let yaw_rate = wrap_angle(b.yaw_rad - a.yaw_rad) / (2.0 * h);
             assert!((yaw_rate - k.angular_rate_radps.z).abs() < 1e-3, "yaw rate at {t}");
             // trapezoid integration of speed over the step
             odo += 0.5 * (m.at(last_t).forward_speed_mps + k.forward_speed_mps) * (t - last_t);
-            assert!((odo - k.odometer_m).abs() < 1e-2, "odometer at {t}: {odo} vs {}", k.odometer_m);
+            assert!(
+                (odo - k.odometer_m).abs() < 1e-2,
+                "odometer at {t}: {odo} vs {}",
+                k.odometer_m
+            );
             last_t = t;
             t += 0.0517;
         }

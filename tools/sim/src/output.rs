@@ -162,11 +162,7 @@ enum Source {
 }
 
 fn point(v: &Vector3<f64>) -> Point {
-    Point {
-        x: v.x,
-        y: v.y,
-        z: v.z,
-    }
+    Point { x: v.x, y: v.y, z: v.z }
 }
 
 fn vec3(v: &Vector3<f64>) -> Vec3Msg {
@@ -205,7 +201,11 @@ struct CmuWriter {
 }
 
 fn seconds(stamp_ns: i64) -> String {
-    format!("{}.{:09}", stamp_ns.div_euclid(1_000_000_000), stamp_ns.rem_euclid(1_000_000_000))
+    format!(
+        "{}.{:09}",
+        stamp_ns.div_euclid(1_000_000_000),
+        stamp_ns.rem_euclid(1_000_000_000)
+    )
 }
 
 impl CmuWriter {
@@ -370,7 +370,10 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     let mut imu = Imu::new(&scenario.imu, Rng::derive(run_seed, "imu", 0));
     let mut wheel = WheelEncoder::new(&scenario.wheel, Rng::derive(run_seed, "wheel", 0));
     let mut station = TotalStation::new(&scenario.truth, Rng::derive(run_seed, "truth", 0));
-    let mut gps = scenario.gps.as_ref().map(|g| (Gps::new(g, Rng::derive(run_seed, "gps", 0)), g.rate_hz));
+    let mut gps = scenario
+        .gps
+        .as_ref()
+        .map(|g| (Gps::new(g, Rng::derive(run_seed, "gps", 0)), g.rate_hz));
     let (imu_var_gyro, imu_var_accel, imu_var_orient) = imu.variances();
 
     let mut clocks = vec![

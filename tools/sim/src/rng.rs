@@ -48,7 +48,9 @@ impl Rng {
 
     /// The next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
-        let result = (self.s[0].wrapping_add(self.s[3])).rotate_left(23).wrapping_add(self.s[0]);
+        let result = (self.s[0].wrapping_add(self.s[3]))
+            .rotate_left(23)
+            .wrapping_add(self.s[0]);
         let t = self.s[1] << 17;
         self.s[2] ^= self.s[0];
         self.s[3] ^= self.s[1];
@@ -141,7 +143,10 @@ mod tests {
         for lambda in [0.5, 4.0, 80.0] {
             let n = 50_000;
             let mean = (0..n).map(|_| f64::from(r.poisson(lambda))).sum::<f64>() / f64::from(n);
-            assert!((mean - lambda).abs() < 0.03 * lambda.max(1.0), "lambda {lambda}: mean {mean}");
+            assert!(
+                (mean - lambda).abs() < 0.03 * lambda.max(1.0),
+                "lambda {lambda}: mean {mean}"
+            );
         }
     }
 }

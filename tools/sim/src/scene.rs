@@ -10,6 +10,8 @@ use crate::world::{C_M_PER_NS, World, closest_on_segment};
 
 /// Beam response below which a scatterer is left out.
 const BEAM_CUTOFF: f64 = 0.03;
+/// Squared range inside which spreading stops growing (the antenna's near field), m^2.
+const NEAR_FIELD_M2: f64 = 0.04;
 /// How strongly a pipe's echo depends on its angle to the antenna's polarisation.
 const LINE_POLARISATION: f64 = 0.5;
 
@@ -64,24 +66,26 @@ pub fn collect_echoes(world: &mut World, pose: AntennaPose, beam_half_angle_rad:
     let pol_angle = 2.0 * (pose.yaw_rad + PI / 2.0);
     let (c2, s2) = (pol_angle.cos(), pol_angle.sin());
     let polarisation = world.texture_polarisation();
-    let theta_cut = beam * (-BEAM_CUTOFF.ln()).sqrt();
-    let radius = (world.texture_depth_m() + h) * theta_cut.min(1.45).tan();
+    let tan_cut = (beam * (-BEAM_CUTOFF.ln()).sqrt()).min(1.45).tan();
+    let radius = (world.texture_depth_m() + h) * tan_cut;
+    let inv_beam2 = 1.0 / (beam * beam);
     world.texture_near(pose.x, pose.y, radius, |s| {
         let (dx, dy) = (s.x - pose.x, s.y - pose.y);
         let r_h2 = dx * dx + dy * dy;
         let vertical = s.depth_m + h;
-        let theta = (r_h2.sqrt() / vertical).atan();
-        let g = (-(theta / beam).powi(2)).exp();
-        if g < BEAM_CUTOFF {
+        // outside the cone: skip before any transcendental function
+        if r_h2 > vertical * vertical * tan_cut * tan_cut {
             return;
         }
+        let theta = (r_h2.sqrt() / vertical).atan();
+        let g = (-theta * theta * inv_beam2).exp();
         let col = s.column;
         let slant = (col.t0_ns * col.t0_ns + 4.0 * r_h2 / (col.v_rms_m_per_ns * col.v_rms_m_per_ns)).sqrt();
         let pol = 1.0 + polarisation * (s.orientation[0] * c2 + s.orientation[1] * s2);
         let att = (col.ln_attenuation * slant / col.t0_ns.max(1e-9)).exp();
         out.push(Echo {
             delay_ns: t_air + slant,
-            amplitude: s.strength * att * g * pol / (r_h2 + vertical * vertical).max(0.01),
+            amplitude: s.strength * att * g * pol / (r_h2 + vertical * vertical).max(NEAR_FIELD_M2),
         });
     });
 
@@ -116,7 +120,7 @@ pub fn collect_echoes(world: &mut World, pose: AntennaPose, beam_half_angle_rad:
 }
 
 fn range2(dx: f64, dy: f64, depth: f64, h: f64) -> f64 {
-    (dx * dx + dy * dy + (depth + h) * (depth + h)).max(0.01)
+    (dx * dx + dy * dy + (depth + h) * (depth + h)).max(NEAR_FIELD_M2)
 }
 
 /// Two-way ground travel time and loss factor (attenuation, transmission, beam) of an echo

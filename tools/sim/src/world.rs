@@ -133,7 +133,12 @@ impl World {
             })
             .collect();
         let texture = decl.texture.as_ref().map(|t| {
-            let field = SmoothField::new(&mut Rng::derive(seed, "texture-field", 0), t.correlation_length_m, 48, 3);
+            let field = SmoothField::new(
+                &mut Rng::derive(seed, "texture-field", 0),
+                t.correlation_length_m,
+                48,
+                3,
+            );
             (t.clone(), field)
         });
         let mut points = decl.points.clone();
@@ -142,7 +147,10 @@ impl World {
             let area = (r.area[1][0] - r.area[0][0]).abs() * (r.area[1][1] - r.area[0][1]).abs();
             for _ in 0..rng.poisson(r.per_m2 * area) {
                 points.push(PointObject {
-                    at: [rng.range(r.area[0][0], r.area[1][0]), rng.range(r.area[0][1], r.area[1][1])],
+                    at: [
+                        rng.range(r.area[0][0], r.area[1][0]),
+                        rng.range(r.area[0][1], r.area[1][1]),
+                    ],
                     depth_m: rng.range(r.depth_m[0], r.depth_m[1]),
                     radius_m: rng.range(r.radius_m[0], r.radius_m[1]),
                     kind: if rng.uniform() < r.void_fraction {
@@ -291,7 +299,11 @@ impl World {
         let Some((t, field)) = &self.texture else {
             return Vec::new();
         };
-        let mut rng = Rng::derive(self.seed, "texture-cell", ix.wrapping_mul(0x1_0000_0001).wrapping_add(iy));
+        let mut rng = Rng::derive(
+            self.seed,
+            "texture-cell",
+            ix.wrapping_mul(0x1_0000_0001).wrapping_add(iy),
+        );
         let volume = TEXTURE_CELL_M * TEXTURE_CELL_M * t.max_depth_m;
         let count = rng.poisson(t.density_per_m3 * volume);
         let independent = (1.0 - t.correlation * t.correlation).sqrt();
@@ -352,7 +364,12 @@ pub fn rebar_lines(g: &scenario::RebarGrid) -> Vec<LineObject> {
     let (s, c) = g.angle_deg.to_radians().sin_cos();
     let along = [c, s];
     let across = [-s, c];
-    let at = |u: f64, v: f64| [g.origin[0] + u * along[0] + v * across[0], g.origin[1] + u * along[1] + v * across[1]];
+    let at = |u: f64, v: f64| {
+        [
+            g.origin[0] + u * along[0] + v * across[0],
+            g.origin[1] + u * along[1] + v * across[1],
+        ]
+    };
     let mut out = Vec::new();
     let bar = |p: [f64; 2], q: [f64; 2]| LineObject {
         from: [p[0], p[1], g.depth_m],

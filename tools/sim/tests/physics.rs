@@ -1,0 +1,405 @@
+//! The simulator's physics against what the geometry predicts.
+
+use std::f64::consts::TAU;
+use std::path::Path;
+
+use gprflow::msg::{self, PoseStamped, Trace};
+use gprflow::record::Recording;
+use gprflow_sim::impulse::ImpulseGpr;
+use gprflow_sim::lgpr::LgprArray;
+use gprflow_sim::motion::{GRAVITY_MPS2, Kinematics};
+use gprflow_sim::rng::Rng;
+use gprflow_sim::scenario::{self, ImpulseRadar, ImuConfig, Layer, LgprRadar, PointKind, PointObject, Ringing};
+use gprflow_sim::scene::AntennaPose;
+use gprflow_sim::sensors::Imu;
+use gprflow_sim::world::{C_M_PER_NS, World};
+use gprflow_sim::{Scenario, SimOptions, simulate, topics};
+use nalgebra::{UnitQuaternion, Vector3};
+
+/// Two-way time tolerance for picked echoes, ns (the sample interval is 0.2 ns).
+const DELAY_TOLERANCE_NS: f64 = 0.05;
+/// Allowed relative error of the Allan deviation at 1 s.
+const ALLAN_TOLERANCE: f64 = 0.2;
+
+fn one_layer(eps_r: f64, points: Vec<PointObject>) -> scenario::World {
+    scenario::World {
+        layers: vec![Layer {
+            top_depth_m: 0.0,
+            eps_r,
+            attenuation_db_per_m: 2.0,
+            undulation: None,
+        }],
+        texture: None,
+        points,
+        random_points: None,
+        lines: vec![],
+        rebar: None,
+        clutter: vec![],
+    }
+}
+
+fn quiet_radar() -> ImpulseRadar {
+    ImpulseRadar {
+        ringing: Ringing {
+            first: 0.0,
+            ..Ringing::default()
+        },
+        wow_counts: 0.0,
+        dc_offset_counts: 0.0,
+        dc_walk_counts: 0.0,
+        time_zero_jitter_ns: 0.0,
+        noise_counts: 0.0,
+        direct_coupling_counts: 0.0,
+        samples: 301,
+        ..ImpulseRadar::default()
+    }
+}
+
+/// The time of the strongest (negative or positive) peak, refined by a parabola.
+fn pick(trace: &[f64], dt_ns: f64, k0: f64) -> (f64, f64) {
+    let (k, _) = trace
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+        .expect("samples");
+    let k = k.clamp(1, trace.len() - 2);
+    let (a, b, c) = (trace[k - 1], trace[k], trace[k + 1]);
+    let offset = 0.5 * (a - c) / (a - 2.0 * b + c);
+    ((k as f64 + offset - k0) * dt_ns, b.abs())
+}
+
+#[test]
+fn a_point_scatterer_draws_the_hyperbola_its_velocity_predicts() {
+    let eps_r: f64 = 9.0;
+    let (depth, radius) = (0.8, 0.05);
+    let void = PointObject {
+        at: [5.0, 0.0],
+        depth_m: depth,
+        radius_m: radius,
+        kind: PointKind::Void,
+    };
+    let cfg = quiet_radar();
+    let mut with = World::new(&one_layer(eps_r, vec![void]), 1, 0.0);
+    let mut without = World::new(&one_layer(eps_r, vec![]), 1, 0.0);
+    let mut gpr_a = ImpulseGpr::new(&cfg, Rng::new(1));
+    let mut gpr_b = ImpulseGpr::new(&cfg, Rng::new(1));
+    let v = C_M_PER_NS / eps_r.sqrt();
+    let top = depth - radius;
+    let t0 = 2.0 * top / v;
+    let mut apex = (f64::INFINITY, 0.0);
+    let mut checked = 0;
+    for i in 0..=100 {
+        let x = 4.0 + 0.02 * f64::from(i);
+        let pose = AntennaPose {
+            x,
+            y: 0.0,
+            height_m: 0.0,
+            yaw_rad: 0.0,
+        };
+        let a = gpr_a.trace(&mut with, pose, 0.02);
+        let b = gpr_b.trace(&mut without, pose, 0.02);
+        // quantisation aside, the difference holds the scatterer's echo alone
+        let echo: Vec<f64> = a.iter().zip(&b).map(|(p, q)| f64::from(*p) - f64::from(*q)).collect();
+        let (tau, peak) = pick(&echo, cfg.sample_interval_ns, cfg.time_zero_sample);
+        if peak < 50.0 {
+            continue; // outside the beam
+        }
+        let expected = (t0 * t0 + (2.0 * (x - 5.0) / v).powi(2)).sqrt();
+        assert!(
+            (tau - expected).abs() < DELAY_TOLERANCE_NS,
+            "x = {x:.2} m: echo at {tau:.3} ns, geometry says {expected:.3} ns"
+        );
+        checked += 1;
+        if tau < apex.0 {
+            apex = (tau, x);
+        }
+    }
+    assert!(
+        checked > 40,
+        "the echo must be seen over a good part of the hyperbola, saw {checked} traces"
+    );
+    assert!(
+        (apex.1 - 5.0).abs() < 0.021,
+        "apex above the scatterer, found at x = {}",
+        apex.1
+    );
+    assert!(
+        (apex.0 - t0).abs() < DELAY_TOLERANCE_NS,
+        "apex at {} ns, expected {t0}",
+        apex.0
+    );
+}
+
+fn write_scenario(dir: &Path, name: &str, text: &str) -> Scenario {
+    let path = dir.join(name);
+    std::fs::write(&path, text).expect("write scenario");
+    Scenario::load(&path).expect("valid scenario")
+}
+
+const TEXTURED: &str = r#"
+name: shift
+seed: 77
+world:
+  layers:
+    - { top_depth_m: 0.0, eps_r: 6.0, attenuation_db_per_m: 4.0 }
+  texture: { density_per_m3: 300, max_depth_m: 1.2, strength: 0.05, correlation_length_m: 0.2 }
+radar: { kind: impulse, noise_counts: 5.0 }
+vibration: { roll_deg: 0.0, pitch_deg: 0.0, height_m: 0.0 }
+runs:
+  - name: a
+    start_pause_s: 0.5
+    end_pause_s: 0.5
+    trajectory: { kind: long_drive, start: [0, 0], heading_deg: 0, length_m: 8, speed_mps: 0.5 }
+  - name: b
+    start_pause_s: 0.5
+    end_pause_s: 0.5
+    trajectory: { kind: long_drive, start: [1, 0], heading_deg: 0, length_m: 8, speed_mps: 0.5 }
+"#;
+
+/// Traces of a recording resampled onto a 1 cm grid of truth x from `x0`.
+fn radargram_by_position(path: &Path, x0: f64, columns: usize) -> Vec<Vec<f64>> {
+    let rec = Recording::open(path).expect("open");
+    let mut poses: Vec<(i64, f64)> = Vec::new();
+    let mut traces: Vec<(i64, Vec<f64>)> = Vec::new();
+    rec.scan(|m| {
+        if m.topic == format!("/{}", topics::TRUTH_POSE) {
+            let p: PoseStamped = msg::decode(m.data).expect("pose");
+            poses.push((m.log_time as i64, p.pose.position.x));
+        } else if m.topic == format!("/{}", topics::TRACE) {
+            let t: Trace = msg::decode(m.data).expect("trace");
+            traces.push((m.log_time as i64, t.samples_i16.iter().map(|&s| f64::from(s)).collect()));
+        }
+    });
+    let x_at = |stamp: i64| {
+        let i = poses.partition_point(|(s, _)| *s <= stamp).clamp(1, poses.len() - 1);
+        let ((s0, x0), (s1, x1)) = (poses[i - 1], poses[i]);
+        x0 + (x1 - x0) * (stamp - s0) as f64 / (s1 - s0) as f64
+    };
+    let mut grid = vec![Vec::new(); columns];
+    let mut counts = vec![0usize; columns];
+    for (stamp, samples) in &traces {
+        let col = ((x_at(*stamp) - x0) / 0.01).round();
+        if col >= 0.0 && (col as usize) < columns {
+            let c = col as usize;
+            if grid[c].is_empty() {
+                grid[c] = vec![0.0; samples.len()];
+            }
+            for (g, s) in grid[c].iter_mut().zip(samples) {
+                *g += s;
+            }
+            counts[c] += 1;
+        }
+    }
+    for (g, n) in grid.iter_mut().zip(counts) {
+        g.iter_mut().for_each(|v| *v /= n.max(1) as f64);
+    }
+    grid
+}
+
+#[test]
+fn moving_one_metre_along_track_shifts_the_radargram_by_one_metre() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = write_scenario(dir.path(), "shift.yaml", TEXTURED);
+    for run in ["a", "b"] {
+        let opts = SimOptions {
+            run: Some(run.into()),
+            output: dir.path().join(format!("{run}.mcap")),
+            ..SimOptions::default()
+        };
+        simulate(&scenario, &opts, &mut |_| {}).expect("simulate");
+    }
+    // both from x = 1 m (the first metre of a has no partner in b)
+    let a = radargram_by_position(&dir.path().join("a.mcap"), 0.0, 900);
+    let b = radargram_by_position(&dir.path().join("b.mcap"), 1.0, 700);
+    // mean trace removed, below the direct wave
+    let demean = |g: &[Vec<f64>]| -> Vec<Vec<f64>> {
+        let valid: Vec<&Vec<f64>> = g.iter().filter(|c| !c.is_empty()).collect();
+        let n = valid[0].len();
+        let mean: Vec<f64> = (0..n)
+            .map(|k| valid.iter().map(|c| c[k]).sum::<f64>() / valid.len() as f64)
+            .collect();
+        g.iter()
+            .map(|c| {
+                if c.is_empty() {
+                    c.clone()
+                } else {
+                    c.iter().zip(&mean).skip(40).map(|(v, m)| v - m).collect()
+                }
+            })
+            .collect()
+    };
+    let (a, b) = (demean(&a), demean(&b));
+    let score = |shift: usize| {
+        let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+        for (j, cb) in b.iter().enumerate().take(650) {
+            let Some(ca) = a.get(j + shift) else { continue };
+            if ca.is_empty() || cb.is_empty() {
+                continue;
+            }
+            for (x, y) in ca.iter().zip(cb) {
+                sab += x * y;
+                saa += x * x;
+                sbb += y * y;
+            }
+        }
+        sab / (saa * sbb).sqrt()
+    };
+    let (best, corr) = (0..=200)
+        .map(|s| (s, score(s)))
+        .max_by(|x, y| x.1.total_cmp(&y.1))
+        .expect("shifts");
+    assert!(
+        (best as i64 - 100).abs() <= 1,
+        "best shift {best} cm, correlation {corr:.3}"
+    );
+    assert!(corr > 0.9, "the same ground must look the same: correlation {corr:.3}");
+    assert!(score(50) < 0.5 * corr, "another place must look different");
+}
+
+#[test]
+fn same_seed_gives_identical_bytes_and_another_seed_does_not() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = write_scenario(dir.path(), "shift.yaml", TEXTURED);
+    let other = write_scenario(dir.path(), "other.yaml", &TEXTURED.replace("seed: 77", "seed: 78"));
+    let mut files = Vec::new();
+    for (i, s) in [&scenario, &scenario, &other].into_iter().enumerate() {
+        let output = dir.path().join(format!("{i}.mcap"));
+        let opts = SimOptions {
+            output: output.clone(),
+            max_duration_s: Some(6.0),
+            ..SimOptions::default()
+        };
+        simulate(s, &opts, &mut |_| {}).expect("simulate");
+        files.push(std::fs::read(output).expect("read"));
+    }
+    assert!(files[0] == files[1], "same scenario and seed, different bytes");
+    assert!(files[0] != files[2], "another seed, same bytes");
+}
+
+fn allan_deviation_at(samples: &[f64], per_cluster: usize) -> f64 {
+    let means: Vec<f64> = samples
+        .chunks_exact(per_cluster)
+        .map(|c| c.iter().sum::<f64>() / per_cluster as f64)
+        .collect();
+    let s: f64 = means.windows(2).map(|w| (w[1] - w[0]).powi(2)).sum();
+    (s / (2.0 * (means.len() - 1) as f64)).sqrt()
+}
+
+#[test]
+fn imu_noise_matches_the_configured_densities() {
+    let cfg = ImuConfig::default();
+    let mut imu = Imu::new(&cfg, Rng::new(11));
+    let rest = Kinematics {
+        position_m: Vector3::zeros(),
+        world_from_body: UnitQuaternion::identity(),
+        yaw_rad: 0.0,
+        velocity_mps: Vector3::zeros(),
+        accel_mps2: Vector3::zeros(),
+        angular_rate_radps: Vector3::zeros(),
+        specific_force_mps2: Vector3::new(0.0, 0.0, GRAVITY_MPS2),
+        odometer_m: 0.0,
+        forward_speed_mps: 0.0,
+        forward_accel_mps2: 0.0,
+    };
+    let n = (cfg.rate_hz * 1200.0) as usize;
+    let mut gyro = vec![Vec::with_capacity(n); 3];
+    let mut accel = vec![Vec::with_capacity(n); 3];
+    for _ in 0..n {
+        let s = imu.sample(&rest);
+        for axis in 0..3 {
+            gyro[axis].push(s.gyro_radps[axis]);
+            accel[axis].push(s.accel_mps2[axis]);
+        }
+    }
+    let per_second = cfg.rate_hz as usize;
+    for axis in 0..3 {
+        for (name, series, density) in [
+            ("gyro", &gyro[axis], cfg.gyro_noise_density),
+            ("accel", &accel[axis], cfg.accel_noise_density),
+        ] {
+            // white noise of density N has Allan deviation N / sqrt(tau)
+            let adev = allan_deviation_at(series, per_second);
+            assert!(
+                (adev / density - 1.0).abs() < ALLAN_TOLERANCE,
+                "{name} axis {axis}: Allan deviation at 1 s {adev:.3e}, density {density:.3e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn sfcw_sweeps_put_a_reflector_at_its_delay() {
+    let eps_r: f64 = 6.0;
+    let cfg = LgprRadar {
+        noise: 0.0,
+        ..LgprRadar::default()
+    };
+    let mut probe = LgprArray::new(&cfg, 5, Rng::new(2));
+    let channel = 5;
+    let offset = probe.channel_offset_m(channel);
+    let depth = 1.0;
+    let rock = PointObject {
+        at: [0.0, offset],
+        depth_m: depth,
+        radius_m: 0.1,
+        kind: PointKind::Void,
+    };
+    let mut with = World::new(&one_layer(eps_r, vec![rock]), 1, 0.0);
+    let mut without = World::new(&one_layer(eps_r, vec![]), 1, 0.0);
+    let body = Kinematics {
+        position_m: Vector3::zeros(),
+        world_from_body: UnitQuaternion::identity(),
+        yaw_rad: 0.0,
+        velocity_mps: Vector3::zeros(),
+        accel_mps2: Vector3::zeros(),
+        angular_rate_radps: Vector3::zeros(),
+        specific_force_mps2: Vector3::new(0.0, 0.0, GRAVITY_MPS2),
+        odometer_m: 0.0,
+        forward_speed_mps: 0.0,
+        forward_accel_mps2: 0.0,
+    };
+    let (factory, factory_cal) = probe.factory_calibration();
+    let tones = cfg.tones as usize;
+    let complex = |v: &[f32], i: usize| nalgebra::Complex::new(f64::from(v[2 * i]), f64::from(v[2 * i + 1]));
+    // seed 001 eq. 2-4 on one channel: (S_ant / S_cal) / (S_fac / S_fac_cal) - 1
+    let calibrated = |values: &[f32], cal: &[f32]| -> Vec<nalgebra::Complex<f64>> {
+        (0..tones)
+            .map(|m| {
+                let i = channel * tones + m;
+                (complex(values, i) / complex(cal, m)) / (complex(&factory, i) / complex(&factory_cal, m))
+                    - nalgebra::Complex::new(1.0, 0.0)
+            })
+            .collect()
+    };
+    let (va, ca) = probe.sweep(&mut with, &body, 30.0);
+    let mut twin = LgprArray::new(&cfg, 5, Rng::new(2));
+    let (vb, cb) = twin.sweep(&mut without, &body, 30.0);
+    let a = calibrated(&va, &ca);
+    let b = calibrated(&vb, &cb);
+    let diff: Vec<_> = a.iter().zip(&b).map(|(x, y)| x - y).collect();
+    // back to time: inverse DFT on a fine grid, the envelope peaks at the echo's delay
+    let f0 = cfg.start_frequency_hz * 1e-9;
+    let df = cfg.frequency_step_hz * 1e-9;
+    let envelope = |t: f64| -> f64 {
+        diff.iter()
+            .enumerate()
+            .map(|(m, s)| s * nalgebra::Complex::from_polar(1.0, TAU * (f0 + m as f64 * df) * t))
+            .sum::<nalgebra::Complex<f64>>()
+            .norm()
+    };
+    let (t_peak, _) = (0..4000)
+        .map(|i| {
+            let t = f64::from(i) * 0.005;
+            (t, envelope(t))
+        })
+        .max_by(|x, y| x.1.total_cmp(&y.1))
+        .expect("grid");
+    let v = C_M_PER_NS / eps_r.sqrt();
+    let expected = 2.0 * cfg.height_m / C_M_PER_NS + 2.0 * (depth - 0.1) / v;
+    assert!(
+        (t_peak - expected).abs() < 0.1,
+        "reflector at {t_peak:.3} ns after calibration and IDFT, expected {expected:.3} ns"
+    );
+    // and the calibration removed the hardware: the raw sweep alone would not say so
+    assert!(probe.channels() == 11);
+}
