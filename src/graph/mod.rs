@@ -113,6 +113,14 @@ pub fn locate_yaml_error(file: &Path, text: &str, error: &serde_saphyr::Error) -
     }
 }
 
+/// Where the value at a dotted key path (`runs.0.trajectory.speed_mps`) is in a YAML text,
+/// or the nearest enclosing node that is there; for errors found after deserialising.
+pub fn locate_yaml_key(file: &Path, text: &str, key_path: &str) -> Box<Location> {
+    let path: Vec<String> = key_path.split('.').map(str::to_owned).collect();
+    let position = Positions::scan(text).ok().and_then(|p| p.value(&path));
+    location(file, position, key_path.to_owned())
+}
+
 fn locate(file: &Path, positions: &Positions, error: &serde_saphyr::Error) -> (Box<Location>, String) {
     let error = error.without_snippet();
     let position = error

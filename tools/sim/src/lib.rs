@@ -66,12 +66,10 @@ pub enum SimError {
         message: String,
     },
     /// A value is out of range.
-    #[error("{}: {key}: {message}", file.display())]
+    #[error("{at}: {message}")]
     Invalid {
-        /// The scenario file.
-        file: PathBuf,
-        /// Key path of the value.
-        key: String,
+        /// File, line, column and key path of the value.
+        at: Box<gprflow::graph::Location>,
         /// What is wrong.
         message: String,
     },

@@ -717,8 +717,8 @@ pub(crate) fn validate(t: &Trajectory) -> Result<(), (String, String)> {
             corner_radius_m,
             ..
         } => {
-            positive("size_m[0]", size_m[0])?;
-            positive("size_m[1]", size_m[1])?;
+            positive("size_m.0", size_m[0])?;
+            positive("size_m.1", size_m[1])?;
             positive("speed_mps", *speed_mps)?;
             positive("corner_radius_m", *corner_radius_m)?;
             if *laps == 0 {

@@ -699,8 +699,7 @@ impl Scenario {
             SimError::Scenario { at, message }
         })?;
         scenario.validate().map_err(|(key, message)| SimError::Invalid {
-            file: file.to_owned(),
-            key,
+            at: gprflow::graph::locate_yaml_key(file, text, &key),
             message,
         })?;
         Ok(scenario)
@@ -756,7 +755,7 @@ impl Scenario {
         }
         let mut last_top = -1.0;
         for (i, layer) in self.world.layers.iter().enumerate() {
-            let key = |f: &str| format!("world.layers[{i}].{f}");
+            let key = |f: &str| format!("world.layers.{i}.{f}");
             if i == 0 && layer.top_depth_m != 0.0 {
                 return Err((key("top_depth_m"), "the first layer starts at depth 0".into()));
             }
@@ -785,21 +784,21 @@ impl Scenario {
             unit("world.texture.polarisation", t.polarisation)?;
         }
         for (i, p) in self.world.points.iter().enumerate() {
-            positive(&format!("world.points[{i}].depth_m"), p.depth_m)?;
-            positive(&format!("world.points[{i}].radius_m"), p.radius_m)?;
+            positive(&format!("world.points.{i}.depth_m"), p.depth_m)?;
+            positive(&format!("world.points.{i}.radius_m"), p.radius_m)?;
         }
         for (i, l) in self.world.lines.iter().enumerate() {
-            positive(&format!("world.lines[{i}].radius_m"), l.radius_m)?;
-            positive(&format!("world.lines[{i}].from[2]"), l.from[2])?;
-            positive(&format!("world.lines[{i}].to[2]"), l.to[2])?;
+            positive(&format!("world.lines.{i}.radius_m"), l.radius_m)?;
+            positive(&format!("world.lines.{i}.from.2"), l.from[2])?;
+            positive(&format!("world.lines.{i}.to.2"), l.to[2])?;
         }
         if let Some(r) = &self.world.random_points {
             non_negative("world.random_points.per_m2", r.per_m2)?;
             unit("world.random_points.void_fraction", r.void_fraction)?;
         }
         if let Some(r) = &self.world.rebar {
-            positive("world.rebar.spacing_m[0]", r.spacing_m[0])?;
-            positive("world.rebar.spacing_m[1]", r.spacing_m[1])?;
+            positive("world.rebar.spacing_m.0", r.spacing_m[0])?;
+            positive("world.rebar.spacing_m.1", r.spacing_m[1])?;
             positive("world.rebar.depth_m", r.depth_m)?;
         }
         match &self.radar {
@@ -834,13 +833,13 @@ impl Scenario {
             positive("gps.correlation_time_s", g.correlation_time_s)?;
         }
         for (i, run) in self.runs.iter().enumerate() {
-            non_negative(&format!("runs[{i}].soil_moisture"), run.soil_moisture)?;
+            non_negative(&format!("runs.{i}.soil_moisture"), run.soil_moisture)?;
             if run.soil_moisture > 0.5 {
-                return Err((format!("runs[{i}].soil_moisture"), "at most 0.5".into()));
+                return Err((format!("runs.{i}.soil_moisture"), "at most 0.5".into()));
             }
-            non_negative(&format!("runs[{i}].start_pause_s"), run.start_pause_s)?;
-            non_negative(&format!("runs[{i}].end_pause_s"), run.end_pause_s)?;
-            crate::motion::validate(&run.trajectory).map_err(|(k, m)| (format!("runs[{i}].trajectory.{k}"), m))?;
+            non_negative(&format!("runs.{i}.start_pause_s"), run.start_pause_s)?;
+            non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
+            crate::motion::validate(&run.trajectory).map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
         }
         Ok(())
     }

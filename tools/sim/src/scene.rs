@@ -93,6 +93,9 @@ pub fn collect_echoes(world: &mut World, pose: AntennaPose, beam_half_angle_rad:
     for p in &world.points {
         let (dx, dy) = (p.at[0] - pose.x, p.at[1] - pose.y);
         let top = (p.depth_m - p.radius_m).max(0.01);
+        if dx * dx + dy * dy > (top + h) * (top + h) * tan_cut * tan_cut {
+            continue;
+        }
         if let Some((slant, loss)) = path(world, dx, dy, top, h, beam, [p.at[0], p.at[1]]) {
             out.push(Echo {
                 delay_ns: t_air + slant,

@@ -302,8 +302,8 @@ fn imu_noise_matches_the_configured_densities() {
         forward_accel_mps2: 0.0,
     };
     let n = (cfg.rate_hz * 1200.0) as usize;
-    let mut gyro = vec![Vec::with_capacity(n); 3];
-    let mut accel = vec![Vec::with_capacity(n); 3];
+    let mut gyro: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
+    let mut accel: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
     for _ in 0..n {
         let s = imu.sample(&rest);
         for axis in 0..3 {
