@@ -617,3 +617,48 @@ fn bad_input_gets_clear_errors() {
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("not a readable MCAP file"), "{}", stderr(&o));
 }
+
+#[test]
+fn sim_writes_recordings_that_inspect_and_the_python_reader_agree_on() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (scenario, run, topics) in [
+        ("tools/sim/scenarios/pipes_one_line.yaml", "lawnmower", 5),
+        ("tools/sim/scenarios/highway.yaml", "track_97_offset", 7),
+    ] {
+        let rec = dir.path().join(format!("{run}.mcap"));
+        let o = gprflow(&[
+            "sim",
+            scenario,
+            "-o",
+            rec.to_str().expect("utf8"),
+            "--run",
+            run,
+            "--duration",
+            "3",
+            "--format",
+            "cmu-gpr",
+            "--json",
+        ]);
+        assert!(o.status.success(), "sim failed: {}", stderr(&o));
+        let summary: serde_json::Value = serde_json::from_slice(&o.stdout).expect("summary json");
+        let inspect = gprflow(&["inspect", rec.to_str().expect("utf8"), "--json"]);
+        assert!(inspect.status.success(), "{}", stderr(&inspect));
+        let report: serde_json::Value = serde_json::from_slice(&inspect.stdout).expect("inspect json");
+        let text = report.to_string();
+        for (topic, n) in summary["messages"].as_object().expect("counts") {
+            assert!(text.contains(&format!("/{topic}")), "inspect lacks /{topic}: {text}");
+            assert!(n.as_u64().expect("count") > 0);
+        }
+        assert!(text.contains("world.json") && text.contains("scenario.yaml"), "{text}");
+        peer_check(&rec, &format!("on {topics} topics decoded identically"));
+        // the impulse run also wrote the CMU-GPR folder beside the recording
+        let folder = rec.with_extension("");
+        assert_eq!(folder.join("gpr_meas.csv").exists(), run == "lawnmower", "{}", folder.display());
+    }
+    // a broken scenario: exit 2, the file and line named
+    let bad = dir.path().join("bad.yaml");
+    std::fs::write(&bad, "name: x\nseed: 1\nwrold: {}\n").expect("write");
+    let o = gprflow(&["sim", bad.to_str().expect("utf8"), "-o", "/dev/null"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("bad.yaml:3:"), "{}", stderr(&o));
+}
