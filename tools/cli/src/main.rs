@@ -81,7 +81,7 @@ enum Command {
     ///
     /// Example: gprflow sim tools/sim/scenarios/basement.yaml -o basement.mcap --run loop
     Sim {
-        /// Scenario file (YAML; see tools/sim/scenarios/REFERENCE.yaml).
+        /// Scenario file (YAML; fields in tools/sim/scenarios/README.md).
         #[arg(required_unless_present = "schema")]
         scenario: Option<PathBuf>,
         /// MCAP file to write.

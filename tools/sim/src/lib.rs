@@ -14,6 +14,7 @@ pub mod impulse;
 pub mod lgpr;
 pub mod motion;
 pub mod output;
+pub mod reference;
 pub mod rng;
 pub mod scenario;
 pub mod scene;

@@ -1,8 +1,8 @@
 //! Scenario files: the world, the radar, the motion and the sensors of a simulated run.
 //!
-//! Every field is documented here; the documentation is also in the JSON schema
+//! Every field is documented here; the same documentation is in the JSON schema
 //! (`gprflow sim --schema`, checked in as `tools/sim/scenario.schema.json`) and in the
-//! annotated reference scenario `tools/sim/scenarios/REFERENCE.yaml`. Lengths are metres,
+//! field-by-field reference `tools/sim/scenarios/README.md`, both generated from these types. Lengths are metres,
 //! depths are positive downwards, angles in scenario files are degrees (`_deg`), times
 //! seconds unless a name says otherwise. World coordinates: x east, y north, z up.
 

@@ -136,6 +136,20 @@ fn checked_in_schema_matches_the_code() {
 }
 
 #[test]
+fn scenario_reference_matches_the_code() {
+    let path = scenarios_dir().join("README.md");
+    let fresh = gprflow_sim::reference::reference_markdown();
+    if std::env::var_os("GPRFLOW_UPDATE_SCHEMA").is_some() {
+        std::fs::write(&path, &fresh).expect("write reference");
+    }
+    let checked_in = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        checked_in == fresh,
+        "tools/sim/scenarios/README.md is stale: GPRFLOW_UPDATE_SCHEMA=1 cargo test -p gprflow-sim --test scenarios"
+    );
+}
+
+#[test]
 fn cmu_gpr_layout_has_the_dataset_columns_and_every_message() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scenario = Scenario::parse(GOOD, Path::new("good.yaml")).expect("good");
