@@ -38,7 +38,12 @@ fn type_of(v: &Value) -> String {
         _ => v
             .get("enum")
             .and_then(Value::as_array)
-            .map(|e| e.iter().map(|x| format!("`{}`", x.as_str().unwrap_or_default())).collect::<Vec<_>>().join(", "))
+            .map(|e| {
+                e.iter()
+                    .map(|x| format!("`{}`", x.as_str().unwrap_or_default()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            })
             .unwrap_or_else(|| "value".to_owned()),
     }
 }
@@ -64,7 +69,11 @@ fn table(out: &mut String, obj: &Value) {
             None => String::new(),
         };
         let doc = p.get("description").and_then(Value::as_str).unwrap_or_default();
-        out.push_str(&format!("| `{name}` | {} | {default} | {} |\n", type_of(p), one_line(doc)));
+        out.push_str(&format!(
+            "| `{name}` | {} | {default} | {} |\n",
+            type_of(p),
+            one_line(doc)
+        ));
     }
 }
 

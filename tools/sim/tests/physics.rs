@@ -403,3 +403,81 @@ fn sfcw_sweeps_put_a_reflector_at_its_delay() {
     // and the calibration removed the hardware: the raw sweep alone would not say so
     assert!(probe.channels() == 11);
 }
+
+fn correlation(a: &[i16], b: &[i16]) -> f64 {
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b).skip(40) {
+        let (x, y) = (f64::from(*x), f64::from(*y));
+        ab += x * y;
+        aa += x * x;
+        bb += y * y;
+    }
+    ab / (aa * bb).sqrt()
+}
+
+#[test]
+fn polarised_ground_depends_on_heading_but_not_on_direction() {
+    let mut decl = one_layer(6.0, vec![]);
+    decl.texture = Some(scenario::Texture {
+        density_per_m3: 300.0,
+        max_depth_m: 1.2,
+        strength: 0.05,
+        correlation_length_m: 0.2,
+        correlation: 0.0,
+        polarisation: 0.6,
+    });
+    let mut world = World::new(&decl, 3, 0.0);
+    let mut gpr = ImpulseGpr::new(&quiet_radar(), Rng::new(1));
+    let at = |yaw_rad: f64| AntennaPose {
+        x: 2.0,
+        y: 1.0,
+        height_m: 0.0,
+        yaw_rad,
+    };
+    let east = gpr.trace(&mut world, at(0.0), 0.02);
+    let west = gpr.trace(&mut world, at(std::f64::consts::PI), 0.02);
+    let north = gpr.trace(&mut world, at(std::f64::consts::FRAC_PI_2), 0.02);
+    assert!(
+        correlation(&east, &west) > 0.999,
+        "driving the other way sees the same ground"
+    );
+    let across = correlation(&east, &north);
+    assert!(
+        across < 0.9,
+        "a crossing heading must see the ground differently: {across:.3}"
+    );
+    assert!(across > 0.2, "but still the same ground: {across:.3}");
+}
+
+#[test]
+fn wetter_soil_stretches_travel_times() {
+    let void = PointObject {
+        at: [0.0, 0.0],
+        depth_m: 0.6,
+        radius_m: 0.05,
+        kind: PointKind::Void,
+    };
+    let cfg = quiet_radar();
+    let pose = AntennaPose {
+        x: 0.0,
+        y: 0.0,
+        height_m: 0.0,
+        yaw_rad: 0.0,
+    };
+    let mut delays = Vec::new();
+    for moisture in [0.0, 0.1] {
+        let mut with = World::new(&one_layer(6.0, vec![void.clone()]), 1, moisture);
+        let trace = ImpulseGpr::new(&cfg, Rng::new(1)).trace(&mut with, pose, 0.02);
+        let samples: Vec<f64> = trace.iter().map(|&s| f64::from(s)).collect();
+        delays.push(pick(&samples, cfg.sample_interval_ns, cfg.time_zero_sample));
+    }
+    let (dry, wet) = (delays[0], delays[1]);
+    // CRIM: sqrt(eps) grows by 0.1 * (sqrt(80) - 1)
+    let expected = dry.0 * (6f64.sqrt() + 0.1 * (80f64.sqrt() - 1.0)) / 6f64.sqrt();
+    assert!(
+        (wet.0 - expected).abs() < DELAY_TOLERANCE_NS,
+        "wet echo at {:.3} ns, expected {expected:.3}",
+        wet.0
+    );
+    assert!(wet.1 < dry.1, "wetter soil attenuates more");
+}
