@@ -653,7 +653,12 @@ fn sim_writes_recordings_that_inspect_and_the_python_reader_agree_on() {
         peer_check(&rec, &format!("on {topics} topics decoded identically"));
         // the impulse run also wrote the CMU-GPR folder beside the recording
         let folder = rec.with_extension("");
-        assert_eq!(folder.join("gpr_meas.csv").exists(), run == "lawnmower", "{}", folder.display());
+        assert_eq!(
+            folder.join("gpr_meas.csv").exists(),
+            run == "lawnmower",
+            "{}",
+            folder.display()
+        );
     }
     // a broken scenario: exit 2, the file and line named
     let bad = dir.path().join("bad.yaml");

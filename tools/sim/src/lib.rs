@@ -1,6 +1,6 @@
 //! The gprflow simulator: subsurface worlds, trajectories and sensors, written as recordings.
 //!
-//! A [`Scenario`](scenario::Scenario) declares a world (soil layers, texture, objects), a
+//! A [`Scenario`] declares a world (soil layers, texture, objects), a
 //! radar (single-channel impulse GPR or the LGPR's SFCW array), the runs made in it and the
 //! proprioceptive sensors. [`simulate`] writes one run to an MCAP recording with every sensor
 //! topic, the ground truth and the world's truth features, deterministically per seed.
