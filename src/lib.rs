@@ -1,6 +1,8 @@
 //! gprflow runtime: messages, bus, stage SDK, graph files, launcher and MCAP I/O.
 
 pub mod bus;
+pub mod diff;
+pub mod eval;
 pub mod graph;
 pub mod launch;
 pub mod msg;

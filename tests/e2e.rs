@@ -667,3 +667,177 @@ fn sim_writes_recordings_that_inspect_and_the_python_reader_agree_on() {
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("bad.yaml:3:"), "{}", stderr(&o));
 }
+
+/// Largest difference accepted between our statistics and evo's on the same TUM files.
+const EVO_TOLERANCE_M: f64 = 1e-6;
+
+fn evo_stats(tool: &str, args: &[&str], dir: &Path) -> serde_json::Value {
+    let zip = dir.join(format!("{tool}-{}.zip", args.len()));
+    let _ = std::fs::remove_file(&zip);
+    let o = Command::new(repo().join(format!(".venv-peers/bin/{tool}")))
+        .current_dir(dir)
+        .args(args)
+        .arg("--save_results")
+        .arg(&zip)
+        .env("MPLBACKEND", "Agg")
+        .output()
+        .expect("evo runs (tools/peer/setup-venv.sh installs it)");
+    assert!(o.status.success(), "{tool} failed: {}", stderr(&o));
+    let unzip = Command::new(repo().join(".venv-peers/bin/python"))
+        .args([
+            "-c",
+            "import sys, zipfile; sys.stdout.write(zipfile.ZipFile(sys.argv[1]).read('stats.json').decode())",
+        ])
+        .arg(&zip)
+        .output()
+        .expect("python runs");
+    serde_json::from_slice(&unzip.stdout).expect("evo stats.json")
+}
+
+#[test]
+fn eval_agrees_with_evo_on_ate_and_rpe() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // a lawnmower with GPS: turns make the SE(3) alignment well posed
+    let scenario = dir.path().join("gps.yaml");
+    let text = std::fs::read_to_string(repo().join("tools/sim/scenarios/pipes_one_line.yaml")).expect("scenario");
+    std::fs::write(&scenario, format!("{text}\ngps: {{ rate_hz: 10 }}\n")).expect("write");
+    let rec = dir.path().join("gps.mcap");
+    let o = gprflow(&[
+        "sim",
+        scenario.to_str().expect("utf8"),
+        "-o",
+        rec.to_str().expect("utf8"),
+        "--duration",
+        "45",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let prefix = dir.path().join("pair");
+    let o = gprflow(&[
+        "eval",
+        rec.to_str().expect("utf8"),
+        "--format",
+        "json",
+        "--delta",
+        "2",
+        "--write-tum",
+        prefix.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let ours: serde_json::Value = serde_json::from_slice(&o.stdout).expect("eval json");
+    assert!(
+        ours["estimate"].as_str().expect("estimate").ends_with("/gps/odometry"),
+        "{ours}"
+    );
+    let (gt, est) = ("pair_gt.txt", "pair_est.txt");
+    let cases = [
+        (
+            "ate",
+            evo_stats("evo_ape", &["tum", gt, est, "-r", "trans_part"], dir.path()),
+        ),
+        (
+            "ate_aligned",
+            evo_stats("evo_ape", &["tum", gt, est, "-r", "trans_part", "--align"], dir.path()),
+        ),
+        (
+            "rpe",
+            evo_stats(
+                "evo_rpe",
+                &["tum", gt, est, "-r", "trans_part", "--delta", "2", "--delta_unit", "f"],
+                dir.path(),
+            ),
+        ),
+    ];
+    for (name, theirs) in cases {
+        for stat in ["rmse", "mean", "median", "std", "min", "max"] {
+            let (a, b) = (
+                ours[name][stat].as_f64().expect("ours"),
+                theirs[stat].as_f64().expect("evo"),
+            );
+            assert!((a - b).abs() < EVO_TOLERANCE_M, "{name} {stat}: ours {a}, evo {b}");
+        }
+    }
+    // the TUM converter writes what evo reads
+    let tum = dir.path().join("truth.txt");
+    let o = gprflow(&[
+        "convert",
+        rec.to_str().expect("utf8"),
+        "--to",
+        "tum",
+        "--topic",
+        "truth/pose",
+        "-o",
+        tum.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let self_ape = evo_stats("evo_ape", &["tum", "truth.txt", "truth.txt"], dir.path());
+    assert!(self_ape["max"].as_f64().expect("max") < 1e-12);
+}
+
+#[test]
+fn diff_passes_identical_runs_and_names_the_first_divergence() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sim = |name: &str, scenario: &str| {
+        let path = dir.path().join(name);
+        let o = gprflow(&["sim", scenario, "-o", path.to_str().expect("utf8"), "--duration", "4"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        path
+    };
+    let scenario = dir.path().join("s.yaml");
+    let text = std::fs::read_to_string(repo().join("tools/sim/scenarios/pipes_one_line.yaml")).expect("scenario");
+    std::fs::write(&scenario, &text).expect("write");
+    let a = sim("a.mcap", scenario.to_str().expect("utf8"));
+    let b = sim("b.mcap", scenario.to_str().expect("utf8"));
+    let same = gprflow(&["diff", a.to_str().expect("utf8"), b.to_str().expect("utf8")]);
+    assert_eq!(same.status.code(), Some(0), "{}", String::from_utf8_lossy(&same.stdout));
+    // a different seed: the same topics and counts, other values
+    std::fs::write(&scenario, text.replace("seed: 4004", "seed: 4005")).expect("write");
+    let c = sim("c.mcap", scenario.to_str().expect("utf8"));
+    let o = gprflow(&["diff", a.to_str().expect("utf8"), c.to_str().expect("utf8"), "--json"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("diff json");
+    let first = &report["report"]["first_divergence"];
+    assert!(first["topic"].is_string() && first["path"].is_string(), "{first}");
+    let trace = report["report"]["topics"]
+        .as_array()
+        .expect("topics")
+        .iter()
+        .find(|t| t["topic"] == "/gpr/trace")
+        .expect("trace topic");
+    assert_eq!(trace["count_a"], trace["count_b"]);
+    assert!(
+        trace["fields"]["samples_i16[]"]["max_abs"].as_f64().expect("max_abs") > 0.0,
+        "{trace}"
+    );
+    // huge tolerances accept the value differences
+    let o = gprflow(&[
+        "diff",
+        a.to_str().expect("utf8"),
+        c.to_str().expect("utf8"),
+        "--abs-tol",
+        "1e9",
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stdout));
+    // fewer messages: a regression even with tolerances
+    let short = dir.path().join("short.mcap");
+    let o = gprflow(&[
+        "sim",
+        scenario.to_str().expect("utf8"),
+        "-o",
+        short.to_str().expect("utf8"),
+        "--duration",
+        "3",
+    ]);
+    assert!(o.status.success());
+    let o = gprflow(&[
+        "diff",
+        c.to_str().expect("utf8"),
+        short.to_str().expect("utf8"),
+        "--abs-tol",
+        "1e9",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    // not a recording: exit 2 naming the file
+    let o = gprflow(&["diff", a.to_str().expect("utf8"), scenario.to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("s.yaml"), "{}", stderr(&o));
+}

@@ -31,6 +31,6 @@ fi
 rm -f "$stamp"
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
     --requirement "$reqs"
-"$venv/bin/python" -c 'import mcap, mcap_ros2.decoder, lz4, zstandard'
+"$venv/bin/python" -c "import mcap, mcap_ros2.decoder, lz4, zstandard, evo"
 echo "$want" > "$stamp"
 echo "peer venv ready: $venv"

@@ -2,6 +2,7 @@
 //! commands, so that `main.rs` only parses arguments.
 
 pub mod commands;
+pub mod eval;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};

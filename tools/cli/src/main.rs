@@ -103,6 +103,68 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Accuracy of a run against ground truth: ATE (raw and SE(3)-aligned), RPE, lines.
+    ///
+    /// Example: gprflow eval out/run.mcap --truth recordings/sim/basement-forward_backward.mcap
+    Eval {
+        /// The run (an MCAP recording).
+        run: PathBuf,
+        /// Recording holding the ground truth (default: the run itself).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Estimate topic (default: the run's trajectory, state estimates or odometry).
+        #[arg(long)]
+        topic: Option<String>,
+        /// Ground-truth topic.
+        #[arg(long, default_value = gprflow_cli::eval::TRUTH_TOPIC)]
+        truth_topic: String,
+        /// RPE distance in frames.
+        #[arg(long, default_value_t = 1)]
+        delta: usize,
+        /// Longest truth gap to interpolate over, ms.
+        #[arg(long, default_value_t = 200.0)]
+        max_gap_ms: f64,
+        /// Output format.
+        #[arg(long, value_enum, default_value = "text")]
+        format: gprflow_cli::eval::ReportFormat,
+        /// Also write the associated poses as PREFIX_est.txt and PREFIX_gt.txt (TUM).
+        #[arg(long, value_name = "PREFIX")]
+        write_tum: Option<PathBuf>,
+    },
+    /// Convert a recording's trajectory to a TUM file.
+    ///
+    /// Example: gprflow convert run.mcap --to tum --topic /truth/pose -o truth.txt
+    Convert {
+        /// Input recording.
+        input: PathBuf,
+        /// Output format (`tum`).
+        #[arg(long, value_parser = ["tum"])]
+        to: String,
+        /// Pose topic to convert (default: the run's estimate).
+        #[arg(long)]
+        topic: Option<String>,
+        /// Output file.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Compare two recordings: exit 0 within tolerance, 1 on a regression, 2 on an error.
+    ///
+    /// Example: gprflow diff golden.mcap new.mcap --abs-tol 1e-6
+    Diff {
+        /// Reference recording.
+        a: PathBuf,
+        /// Recording to compare.
+        b: PathBuf,
+        /// Absolute tolerance for numeric fields.
+        #[arg(long, default_value_t = 0.0)]
+        abs_tol: f64,
+        /// Relative tolerance for numeric fields.
+        #[arg(long, default_value_t = 0.0)]
+        rel_tol: f64,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Check a graph file without running it (errors name file, line and key).
     ///
     /// Example: gprflow check graphs/toy.yaml
@@ -148,6 +210,46 @@ fn main() -> ExitCode {
         Command::Recover { file, output } => commands::recover(&file, &output),
         Command::Stages => commands::stages(),
         Command::Check { graph, set } => commands::check(&graph, &set),
+        Command::Eval {
+            run,
+            truth,
+            topic,
+            truth_topic,
+            delta,
+            max_gap_ms,
+            format,
+            write_tum,
+        } => gprflow_cli::eval::eval_command(&gprflow_cli::eval::EvalArgs {
+            run,
+            truth,
+            topic,
+            truth_topic,
+            delta,
+            max_gap_ms,
+            format,
+            write_tum,
+        }),
+        Command::Convert {
+            input,
+            to: _,
+            topic,
+            output,
+        } => gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output),
+        Command::Diff {
+            a,
+            b,
+            abs_tol,
+            rel_tol,
+            json,
+        } => gprflow_cli::eval::diff_command(
+            &a,
+            &b,
+            gprflow::diff::Tolerance {
+                abs: abs_tol,
+                rel: rel_tol,
+            },
+            json,
+        ),
         Command::Sim {
             scenario,
             output,

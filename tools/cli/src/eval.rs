@@ -1,0 +1,386 @@
+//! `gprflow eval`, `gprflow convert --to tum` and `gprflow diff`.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use gprflow::diff::{DiffReport, Tolerance, diff};
+use gprflow::eval::{self, PoseTopicKind, Stats, Trajectory, pose_topics};
+use gprflow::msg::{HoughLine, LineMap};
+use gprflow::record::Recording;
+use serde::Serialize;
+
+/// The topic the simulator writes ground truth to.
+pub const TRUTH_TOPIC: &str = "/truth/pose";
+const TRUTH_LINES_TOPIC: &str = "/truth/lines";
+
+/// Output formats of reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ReportFormat {
+    /// Aligned text for a terminal.
+    Text,
+    /// A Markdown table.
+    Markdown,
+    /// JSON.
+    Json,
+}
+
+/// Arguments of `gprflow eval`.
+#[derive(Debug, Clone)]
+pub struct EvalArgs {
+    /// The run to evaluate.
+    pub run: PathBuf,
+    /// Recording with the ground truth (default: the run itself).
+    pub truth: Option<PathBuf>,
+    /// Estimate topic (default: chosen from the run's pose topics).
+    pub topic: Option<String>,
+    /// Truth topic.
+    pub truth_topic: String,
+    /// RPE frame distance.
+    pub delta: usize,
+    /// Longest truth gap to interpolate over, ms.
+    pub max_gap_ms: f64,
+    /// Output format.
+    pub format: ReportFormat,
+    /// Also write the associated poses as `PREFIX_est.txt` and `PREFIX_gt.txt` (TUM).
+    pub write_tum: Option<PathBuf>,
+}
+
+/// Picks the estimate among a recording's pose topics: the last trajectory snapshot, else
+/// per-state estimates, else odometry, else any other pose topic that is not the truth.
+fn pick_estimate(rec: &Recording, truth_topic: &str) -> Result<String> {
+    let topics = pose_topics(rec);
+    let rank = |k: PoseTopicKind| match k {
+        PoseTopicKind::Snapshot => 0,
+        PoseTopicKind::StateEstimate => 1,
+        PoseTopicKind::Odometry => 2,
+        PoseTopicKind::PoseStamped => 3,
+    };
+    topics
+        .iter()
+        .filter(|(t, _)| t != truth_topic)
+        .min_by_key(|(t, k)| (rank(*k), t.clone()))
+        .map(|(t, _)| t.clone())
+        .with_context(|| {
+            format!(
+                "{}: no estimate to evaluate (pose topics: {}); name one with --topic",
+                rec.path().display(),
+                topics.iter().map(|(t, _)| t.as_str()).collect::<Vec<_>>().join(", ")
+            )
+        })
+}
+
+fn last_line_map(rec: &Recording, topic: Option<&str>) -> Option<(String, Vec<HoughLine>)> {
+    let mut found: Option<(String, Vec<HoughLine>)> = None;
+    rec.scan(|m| {
+        let wanted = match topic {
+            Some(t) => m.topic == t,
+            None => m.msg_type == LineMap::ROS_NAME && m.topic != TRUTH_LINES_TOPIC,
+        };
+        if wanted && let Ok(map) = gprflow::msg::decode::<LineMap>(m.data) {
+            found = Some((m.topic.to_owned(), map.lines));
+        }
+    });
+    found
+}
+
+/// What `gprflow eval` reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    /// Estimate: file and topic.
+    pub estimate: String,
+    /// Truth: file and topic.
+    pub truth: String,
+    /// Estimated poses.
+    pub estimate_poses: usize,
+    /// Truth poses.
+    pub truth_poses: usize,
+    /// Poses paired with truth.
+    pub associated: usize,
+    /// ATE without alignment, m.
+    pub ate: Option<Stats>,
+    /// ATE after SE(3) alignment, m.
+    pub ate_aligned: Option<Stats>,
+    /// RPE, translation part, m.
+    pub rpe: Option<Stats>,
+    /// RPE frame distance.
+    pub rpe_delta: usize,
+    /// Hough-line error against the truth's lines.
+    pub lines: Option<eval::LineError>,
+}
+
+fn topic_name(t: &str) -> String {
+    format!("/{}", t.trim_start_matches('/'))
+}
+
+/// Evaluates a run against ground truth.
+///
+/// # Errors
+/// Unreadable recordings, missing topics (named), no overlap with the truth.
+pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
+    let run = Recording::open(&args.run)?;
+    let truth_rec = match &args.truth {
+        Some(p) => Recording::open(p)?,
+        None => Recording::open(&args.run)?,
+    };
+    let truth_topic = topic_name(&args.truth_topic);
+    let topic = match &args.topic {
+        Some(t) => topic_name(t),
+        None => pick_estimate(&run, &truth_topic)?,
+    };
+    let estimate = Trajectory::from_recording(&run, &topic)?;
+    let truth = Trajectory::from_recording(&truth_rec, &truth_topic)
+        .with_context(|| format!("{}: no ground truth on {truth_topic}", truth_rec.path().display()))?;
+    let a = eval::associate(&estimate, &truth, (args.max_gap_ms * 1e6) as i64);
+    if a.stamps_ns.is_empty() {
+        bail!(
+            "{} {topic}: none of its {} poses falls inside the truth's time span ({} poses on {truth_topic})",
+            args.run.display(),
+            estimate.len(),
+            truth.len()
+        );
+    }
+    if let Some(prefix) = &args.write_tum {
+        for (suffix, poses) in [("_est.txt", &a.estimate), ("_gt.txt", &a.truth)] {
+            let path = PathBuf::from(format!("{}{suffix}", prefix.display()));
+            let t = Trajectory {
+                stamps_ns: a.stamps_ns.clone(),
+                poses: poses.clone(),
+            };
+            std::fs::write(&path, eval::write_tum(&t)).with_context(|| format!("{}: cannot write", path.display()))?;
+        }
+    }
+    let lines = match (
+        last_line_map(&run, None),
+        last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC)),
+    ) {
+        (Some((_, est)), Some((_, tru))) => eval::line_error(&est, &tru),
+        _ => None,
+    };
+    Ok(EvalReport {
+        estimate: format!("{} {topic}", args.run.display()),
+        truth: format!("{} {truth_topic}", truth_rec.path().display()),
+        estimate_poses: estimate.len(),
+        truth_poses: truth.len(),
+        associated: a.stamps_ns.len(),
+        ate: eval::ate(&a, false),
+        ate_aligned: eval::ate(&a, true),
+        rpe: eval::rpe(&a, args.delta),
+        rpe_delta: args.delta,
+        lines,
+    })
+}
+
+fn stats_row(name: &str, s: &Option<Stats>, markdown: bool) -> String {
+    match s {
+        Some(s) if markdown => format!(
+            "| {name} | {:.4} | {:.4} | {:.4} | {:.4} | {} |",
+            s.rmse, s.mean, s.median, s.max, s.count
+        ),
+        Some(s) => format!(
+            "{name:<28} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>7}",
+            s.rmse, s.mean, s.median, s.max, s.count
+        ),
+        None if markdown => format!("| {name} | - | - | - | - | 0 |"),
+        None => format!("{name:<28} {:>9}", "-"),
+    }
+}
+
+/// Runs `gprflow eval`.
+///
+/// # Errors
+/// As [`evaluate`].
+pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
+    let r = evaluate(args)?;
+    let mut out = std::io::stdout().lock();
+    let rpe_name = format!("RPE (delta {} frames)", r.rpe_delta);
+    match args.format {
+        ReportFormat::Json => writeln!(out, "{}", serde_json::to_string_pretty(&r)?)?,
+        ReportFormat::Markdown => {
+            writeln!(
+                out,
+                "Estimate `{}` against `{}`: {} of {} poses associated.\n",
+                r.estimate, r.truth, r.associated, r.estimate_poses
+            )?;
+            writeln!(
+                out,
+                "| metric (m) | RMSE | mean | median | max | n |\n|---|---:|---:|---:|---:|---:|"
+            )?;
+            writeln!(out, "{}", stats_row("ATE", &r.ate, true))?;
+            writeln!(out, "{}", stats_row("ATE, SE(3) aligned", &r.ate_aligned, true))?;
+            writeln!(out, "{}", stats_row(&rpe_name, &r.rpe, true))?;
+            if let Some(l) = r.lines {
+                writeln!(
+                    out,
+                    "\nLines ({} matched): rho RMSE {:.4} m, theta RMSE {:.4} rad",
+                    l.matched, l.rho_rmse_m, l.theta_rmse_rad
+                )?;
+            }
+        }
+        ReportFormat::Text => {
+            writeln!(out, "estimate  {} ({} poses)", r.estimate, r.estimate_poses)?;
+            writeln!(out, "truth     {} ({} poses)", r.truth, r.truth_poses)?;
+            writeln!(out, "associated {}\n", r.associated)?;
+            writeln!(
+                out,
+                "{:<28} {:>9} {:>9} {:>9} {:>9} {:>7}",
+                "metric (m)", "rmse", "mean", "median", "max", "n"
+            )?;
+            writeln!(out, "{}", stats_row("ATE", &r.ate, false))?;
+            writeln!(out, "{}", stats_row("ATE, SE(3) aligned", &r.ate_aligned, false))?;
+            writeln!(out, "{}", stats_row(&rpe_name, &r.rpe, false))?;
+            if let Some(l) = r.lines {
+                writeln!(
+                    out,
+                    "lines ({} matched): rho RMSE {:.4} m, theta RMSE {:.4} rad",
+                    l.matched, l.rho_rmse_m, l.theta_rmse_rad
+                )?;
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Runs `gprflow convert FILE --to tum -o OUT [--topic T]`.
+///
+/// # Errors
+/// Unreadable recording, missing topic, unwritable output.
+pub fn convert_to_tum(input: &Path, topic: Option<&str>, output: &Path) -> Result<ExitCode> {
+    let rec = Recording::open(input)?;
+    let topic = match topic {
+        Some(t) => topic_name(t),
+        None => pick_estimate(&rec, "").context("name the topic with --topic")?,
+    };
+    let t = Trajectory::from_recording(&rec, &topic)?;
+    std::fs::write(output, eval::write_tum(&t)).with_context(|| format!("{}: cannot write", output.display()))?;
+    writeln!(
+        std::io::stdout().lock(),
+        "{} poses of {topic} written to {}",
+        t.len(),
+        output.display()
+    )?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Trajectory comparison between two runs.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrajectoryDiff {
+    /// Topic.
+    pub topic: String,
+    /// ATE of B against A, m.
+    pub b_against_a: Option<Stats>,
+    /// ATE of A against truth, m.
+    pub a_against_truth: Option<Stats>,
+    /// ATE of B against truth, m.
+    pub b_against_truth: Option<Stats>,
+}
+
+/// Runs `gprflow diff A B`: exit 0 within tolerance, 1 on a regression.
+///
+/// # Errors
+/// Unreadable recordings (the caller exits 2).
+pub fn diff_command(a: &Path, b: &Path, tol: Tolerance, json: bool) -> Result<ExitCode> {
+    let (ra, rb) = (Recording::open(a)?, Recording::open(b)?);
+    let report = diff(&ra, &rb, tol)?;
+    // trajectories: every pose topic in both recordings
+    let (ta, tb) = (pose_topics(&ra), pose_topics(&rb));
+    let truth_a = Trajectory::from_recording(&ra, TRUTH_TOPIC).ok();
+    let gap = 200_000_000;
+    let mut trajectories = Vec::new();
+    for (topic, _) in ta
+        .iter()
+        .filter(|(t, _)| t != TRUTH_TOPIC && tb.iter().any(|(u, _)| u == t))
+    {
+        let (Ok(pa), Ok(pb)) = (
+            Trajectory::from_recording(&ra, topic),
+            Trajectory::from_recording(&rb, topic),
+        ) else {
+            continue;
+        };
+        let against = |x: &Trajectory, reference: &Trajectory| eval::ate(&eval::associate(x, reference, gap), false);
+        trajectories.push(TrajectoryDiff {
+            topic: topic.clone(),
+            b_against_a: against(&pb, &pa),
+            a_against_truth: truth_a.as_ref().and_then(|t| against(&pa, t)),
+            b_against_truth: truth_a.as_ref().and_then(|t| against(&pb, t)),
+        });
+    }
+    let mut out = std::io::stdout().lock();
+    if json {
+        let v = serde_json::json!({ "a": a, "b": b, "report": report, "trajectories": trajectories });
+        writeln!(out, "{}", serde_json::to_string_pretty(&v)?)?;
+    } else {
+        print_diff(&mut out, a, b, &report, &trajectories)?;
+    }
+    Ok(if report.regression {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn print_diff(
+    out: &mut impl std::io::Write,
+    a: &Path,
+    b: &Path,
+    r: &DiffReport,
+    trajectories: &[TrajectoryDiff],
+) -> std::io::Result<()> {
+    writeln!(out, "A = {}\nB = {}\n", a.display(), b.display())?;
+    writeln!(out, "{:<34} {:>9} {:>9} {:>10}", "topic", "A", "B", "differing")?;
+    for t in &r.topics {
+        let mark = if t.count_a != t.count_b || t.type_a != t.type_b {
+            "  <-"
+        } else {
+            ""
+        };
+        writeln!(
+            out,
+            "{:<34} {:>9} {:>9} {:>10}{mark}",
+            t.topic, t.count_a, t.count_b, t.differing_messages
+        )?;
+        if t.type_a != t.type_b {
+            writeln!(out, "    type: {} vs {}", t.type_a, t.type_b)?;
+        }
+        for (path, s) in &t.fields {
+            writeln!(
+                out,
+                "    {path:<30} max |a-b| {:.3e}  max rel {:.3e}  beyond tolerance {}",
+                s.max_abs, s.max_rel, s.beyond_tolerance
+            )?;
+        }
+        for (path, n) in &t.structural {
+            writeln!(out, "    {path:<30} differs in {n} message(s)")?;
+        }
+    }
+    if let Some(d) = &r.first_divergence {
+        writeln!(
+            out,
+            "\nfirst divergence: {} message {} (seq {}, stamp {} ns) at `{}`: A = {} B = {}",
+            d.topic, d.index, d.seq, d.stamp_ns, d.path, d.a, d.b
+        )?;
+    }
+    for t in trajectories {
+        let f = |s: &Option<Stats>| s.map_or("-".to_owned(), |s| format!("{:.4} m", s.rmse));
+        writeln!(
+            out,
+            "trajectory {}: ATE B vs A {}, A vs truth {}, B vs truth {}",
+            t.topic,
+            f(&t.b_against_a),
+            f(&t.a_against_truth),
+            f(&t.b_against_truth)
+        )?;
+    }
+    for (k, (va, vb)) in &r.metadata {
+        writeln!(out, "metadata {k}: {va:?} vs {vb:?}")?;
+    }
+    for n in &r.attachments {
+        writeln!(out, "attachment {n} differs")?;
+    }
+    writeln!(
+        out,
+        "\n{}",
+        if r.regression { "REGRESSION" } else { "within tolerance" }
+    )
+}
