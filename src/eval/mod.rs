@@ -152,6 +152,22 @@ pub fn rpe(a: &Associated, delta: usize) -> Option<Stats> {
     Stats::of(&errors)
 }
 
+/// Position error split in the truth's heading frame (seed 001 eq. 11): along track
+/// (the truth's forward axis) and cross track (its left axis), signed, m.
+pub fn track_errors(a: &Associated) -> (Vec<f64>, Vec<f64>) {
+    let mut along = Vec::with_capacity(a.truth.len());
+    let mut cross = Vec::with_capacity(a.truth.len());
+    for (e, t) in a.estimate.iter().zip(&a.truth) {
+        let d = e.translation.vector - t.translation.vector;
+        let forward = t.rotation * Vector3::x();
+        let heading = forward.y.atan2(forward.x);
+        let (s, c) = heading.sin_cos();
+        along.push(c * d.x + s * d.y);
+        cross.push(-s * d.x + c * d.y);
+    }
+    (along, cross)
+}
+
 /// Error of estimated Hough lines against true ones (matched by id).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct LineError {
@@ -256,6 +272,19 @@ mod tests {
         let a = associate(&est, &truth, 200);
         assert_eq!(a.stamps_ns, vec![50]);
         assert!((a.truth[0].translation.vector.x - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn track_errors_split_in_the_truth_heading_frame() {
+        // heading north; the estimate 1 m east of the truth and 2 m ahead
+        let truth = traj(&[(0, [0.0, 0.0, 0.0], std::f64::consts::FRAC_PI_2)]);
+        let est = traj(&[(0, [1.0, 2.0, 0.0], 0.0)]);
+        let (along, cross) = track_errors(&associate(&est, &truth, 0));
+        assert!((along[0] - 2.0).abs() < 1e-12, "{along:?}");
+        assert!(
+            (cross[0] + 1.0).abs() < 1e-12,
+            "east of a northbound truth is to its right: {cross:?}"
+        );
     }
 
     #[test]

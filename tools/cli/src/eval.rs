@@ -106,8 +106,57 @@ pub struct EvalReport {
     pub rpe: Option<Stats>,
     /// RPE frame distance.
     pub rpe_delta: usize,
+    /// Along-track error in the truth's heading frame (signed), m.
+    pub along_track: Option<Stats>,
+    /// Cross-track error in the truth's heading frame (signed), m.
+    pub cross_track: Option<Stats>,
+    /// Registrations against the truth's relative motion.
+    pub registration: Option<RegistrationError>,
     /// Hough-line error against the truth's lines.
     pub lines: Option<eval::LineError>,
+}
+
+/// Registration error: each `Registration` against the truth's relative pose between its
+/// reference and query stamps.
+#[derive(Debug, Clone, Serialize)]
+pub struct RegistrationError {
+    /// Topic.
+    pub topic: String,
+    /// Along-track error, m.
+    pub along_track: Stats,
+    /// Error of the full relative translation, m.
+    pub translation: Stats,
+}
+
+fn registration_error(run: &Recording, truth: &Trajectory, max_gap_ns: i64) -> Option<RegistrationError> {
+    use gprflow::msg::Registration;
+    let mut topic = String::new();
+    let (mut along, mut full) = (Vec::new(), Vec::new());
+    run.scan(|m| {
+        if m.msg_type != Registration::ROS_NAME {
+            return;
+        }
+        let Ok(r) = gprflow::msg::decode::<Registration>(m.data) else {
+            return;
+        };
+        let (Some(a), Some(b)) = (
+            truth.interpolate(r.reference_stamp.to_ns(), max_gap_ns),
+            truth.interpolate(r.query_stamp.to_ns(), max_gap_ns),
+        ) else {
+            return;
+        };
+        topic = m.topic.to_owned();
+        let rel = a.inverse() * b;
+        along.push(r.along_track_m - rel.translation.vector.x);
+        let p = &r.reference_from_query.position;
+        let t = rel.translation.vector;
+        full.push(((p.x - t.x).powi(2) + (p.y - t.y).powi(2) + (p.z - t.z).powi(2)).sqrt());
+    });
+    Some(RegistrationError {
+        topic,
+        along_track: Stats::of(&along)?,
+        translation: Stats::of(&full)?,
+    })
 }
 
 fn topic_name(t: &str) -> String {
@@ -158,6 +207,8 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         (Some((_, est)), Some((_, tru))) => eval::line_error(&est, &tru),
         _ => None,
     };
+    let (along, cross) = eval::track_errors(&a);
+    let registration = registration_error(&run, &truth, (args.max_gap_ms * 1e6) as i64);
     Ok(EvalReport {
         estimate: format!("{} {topic}", args.run.display()),
         truth: format!("{} {truth_topic}", truth_rec.path().display()),
@@ -168,6 +219,9 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         ate_aligned: eval::ate(&a, true),
         rpe: eval::rpe(&a, args.delta),
         rpe_delta: args.delta,
+        along_track: Stats::of(&along),
+        cross_track: Stats::of(&cross),
+        registration,
         lines,
     })
 }
@@ -210,6 +264,20 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             writeln!(out, "{}", stats_row("ATE", &r.ate, true))?;
             writeln!(out, "{}", stats_row("ATE, SE(3) aligned", &r.ate_aligned, true))?;
             writeln!(out, "{}", stats_row(&rpe_name, &r.rpe, true))?;
+            writeln!(out, "{}", stats_row("along-track error", &r.along_track, true))?;
+            writeln!(out, "{}", stats_row("cross-track error", &r.cross_track, true))?;
+            if let Some(g) = &r.registration {
+                writeln!(
+                    out,
+                    "{}",
+                    stats_row("registration, along track", &Some(g.along_track), true)
+                )?;
+                writeln!(
+                    out,
+                    "{}",
+                    stats_row("registration, translation", &Some(g.translation), true)
+                )?;
+            }
             if let Some(l) = r.lines {
                 writeln!(
                     out,
@@ -230,6 +298,20 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             writeln!(out, "{}", stats_row("ATE", &r.ate, false))?;
             writeln!(out, "{}", stats_row("ATE, SE(3) aligned", &r.ate_aligned, false))?;
             writeln!(out, "{}", stats_row(&rpe_name, &r.rpe, false))?;
+            writeln!(out, "{}", stats_row("along-track error", &r.along_track, false))?;
+            writeln!(out, "{}", stats_row("cross-track error", &r.cross_track, false))?;
+            if let Some(g) = &r.registration {
+                writeln!(
+                    out,
+                    "{}",
+                    stats_row("registration, along track", &Some(g.along_track), false)
+                )?;
+                writeln!(
+                    out,
+                    "{}",
+                    stats_row("registration, translation", &Some(g.translation), false)
+                )?;
+            }
             if let Some(l) = r.lines {
                 writeln!(
                     out,
@@ -383,4 +465,73 @@ fn print_diff(
         "\n{}",
         if r.regression { "REGRESSION" } else { "within tolerance" }
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gprflow::msg::{Header, Point, Pose, PoseStamped, Quaternion, Registration, Time};
+    use gprflow::record::{Recorder, RunMetadata};
+
+    fn pose(x: f64) -> Pose {
+        Pose {
+            position: Point { x, y: 0.0, z: 0.0 },
+            orientation: Quaternion {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                w: 1.0,
+            },
+        }
+    }
+
+    #[test]
+    fn registrations_are_checked_against_the_truth_motion() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("r.mcap");
+        let mut rec = Recorder::create(&path, &RunMetadata::this_build()).expect("create");
+        let truth = rec.add_topic("truth/pose", PoseStamped::ROS_NAME).expect("topic");
+        let regs = rec
+            .add_topic("register/registration", Registration::ROS_NAME)
+            .expect("topic");
+        let s = 1_000_000_000i64;
+        for i in 0..=10 {
+            let m = PoseStamped {
+                header: Header::new(i * s, "world"),
+                pose: pose(i as f64), // 1 m/s along x
+            };
+            rec.write(truth, i as u64, i * s, &gprflow::msg::encode(&m))
+                .expect("write");
+        }
+        for (k, (from, to, measured)) in [(2, 5, 3.1), (1, 9, 7.7)].into_iter().enumerate() {
+            let r = Registration {
+                header: Header::new(to * s, "base_link"),
+                reference_submap: k as u32,
+                query_submap: 100,
+                reference_stamp: Time::from_ns(from * s),
+                query_stamp: Time::from_ns(to * s),
+                reference_from_query: pose(measured),
+                covariance: gprflow::msg::Covariance6([0.0; 36]),
+                along_track_m: measured,
+                along_track_variance_m2: 0.01,
+                score: 1.0,
+                method: "test".into(),
+            };
+            rec.write(regs, k as u64, to * s, &gprflow::msg::encode(&r))
+                .expect("write");
+        }
+        rec.finish().expect("finish");
+        let run = Recording::open(&path).expect("open");
+        let t = Trajectory::from_recording(&run, TRUTH_TOPIC).expect("truth");
+        let e = registration_error(&run, &t, 2 * s).expect("registrations");
+        assert_eq!(e.topic, "/register/registration");
+        assert_eq!(e.along_track.count, 2);
+        // errors +0.1 and -0.3
+        assert!(
+            (e.along_track.rmse - (0.05f64).sqrt()).abs() < 1e-9,
+            "{:?}",
+            e.along_track
+        );
+        assert!((e.along_track.mean + 0.1).abs() < 1e-9);
+    }
 }
