@@ -841,3 +841,31 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("s.yaml"), "{}", stderr(&o));
 }
+
+#[test]
+fn golden_outputs_still_match() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for graph in ["toy", "replay-toy"] {
+        let golden = repo().join(format!("recordings/golden/{graph}.mcap"));
+        assert!(
+            golden.exists(),
+            "{} missing: tools/scripts/update-goldens.sh",
+            golden.display()
+        );
+        let out = dir.path().join(format!("{graph}.mcap"));
+        let o = gprflow(&[
+            "launch",
+            &format!("graphs/{graph}.yaml"),
+            "--record",
+            out.to_str().expect("utf8"),
+        ]);
+        assert!(o.status.success(), "{graph}: {}", stderr(&o));
+        let d = gprflow(&["diff", golden.to_str().expect("utf8"), out.to_str().expect("utf8")]);
+        assert_eq!(
+            d.status.code(),
+            Some(0),
+            "{graph} no longer reproduces its golden (if intended: tools/scripts/update-goldens.sh):\n{}",
+            String::from_utf8_lossy(&d.stdout)
+        );
+    }
+}
