@@ -869,3 +869,39 @@ fn golden_outputs_still_match() {
         );
     }
 }
+
+#[test]
+fn eval_draws_a_plot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scenario = dir.path().join("gps.yaml");
+    let text = std::fs::read_to_string(repo().join("tools/sim/scenarios/pipes_one_line.yaml")).expect("scenario");
+    std::fs::write(&scenario, format!("{text}\ngps: {{ rate_hz: 10 }}\n")).expect("write");
+    let rec = dir.path().join("gps.mcap");
+    let o = gprflow(&[
+        "sim",
+        scenario.to_str().expect("utf8"),
+        "-o",
+        rec.to_str().expect("utf8"),
+        "--duration",
+        "20",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = dir.path().join("eval.png");
+    let o = gprflow(&[
+        "eval",
+        rec.to_str().expect("utf8"),
+        "--plot",
+        png.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&png).expect("png written");
+    assert!(
+        bytes.starts_with(b"\x89PNG\r\n\x1a\n") && bytes.len() > 20_000,
+        "{} bytes",
+        bytes.len()
+    );
+    // no estimate in the recording: a clear error, exit 2
+    let o = gprflow(&["eval", "recordings/toy.mcap"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("recordings/toy.mcap"), "{}", stderr(&o));
+}

@@ -15,6 +15,9 @@ pub use trajectory::{PoseTopicKind, Trajectory, TrajectoryError, pose_topics, re
 use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
+/// A `world_from_body` pose.
+pub type Pose = Isometry3<f64>;
+
 /// Summary statistics of a set of errors.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Stats {

@@ -45,6 +45,8 @@ pub struct EvalArgs {
     pub format: ReportFormat,
     /// Also write the associated poses as `PREFIX_est.txt` and `PREFIX_gt.txt` (TUM).
     pub write_tum: Option<PathBuf>,
+    /// Also draw trajectories and errors into this PNG.
+    pub plot: Option<PathBuf>,
 }
 
 /// Picks the estimate among a recording's pose topics: the last trajectory snapshot, else
@@ -208,6 +210,51 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         _ => None,
     };
     let (along, cross) = eval::track_errors(&a);
+    if let Some(png) = &args.plot {
+        let xy = |poses: &[gprflow::eval::Pose]| {
+            poses
+                .iter()
+                .map(|p| (p.translation.vector.x, p.translation.vector.y))
+                .collect()
+        };
+        let t0 = a.stamps_ns[0];
+        let seconds: Vec<f64> = a.stamps_ns.iter().map(|s| (s - t0) as f64 * 1e-9).collect();
+        let over_time = |v: Vec<f64>| seconds.iter().copied().zip(v).collect();
+        let position_error: Vec<f64> = a
+            .estimate
+            .iter()
+            .zip(&a.truth)
+            .map(|(e, t)| (e.translation.vector - t.translation.vector).norm())
+            .collect();
+        crate::plot::trajectory_and_error(
+            png,
+            &format!("{} against {}", topic, truth_topic),
+            &[
+                crate::plot::Series {
+                    label: format!("truth {truth_topic}"),
+                    points: xy(&truth.poses),
+                },
+                crate::plot::Series {
+                    label: format!("estimate {topic}"),
+                    points: xy(&a.estimate),
+                },
+            ],
+            &[
+                crate::plot::Series {
+                    label: "position error (3-D)".into(),
+                    points: over_time(position_error),
+                },
+                crate::plot::Series {
+                    label: "along track".into(),
+                    points: over_time(along.clone()),
+                },
+                crate::plot::Series {
+                    label: "cross track".into(),
+                    points: over_time(cross.clone()),
+                },
+            ],
+        )?;
+    }
     let registration = registration_error(&run, &truth, (args.max_gap_ms * 1e6) as i64);
     Ok(EvalReport {
         estimate: format!("{} {topic}", args.run.display()),

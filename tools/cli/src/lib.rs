@@ -3,6 +3,7 @@
 
 pub mod commands;
 pub mod eval;
+pub mod plot;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};

@@ -130,6 +130,9 @@ enum Command {
         /// Also write the associated poses as PREFIX_est.txt and PREFIX_gt.txt (TUM).
         #[arg(long, value_name = "PREFIX")]
         write_tum: Option<PathBuf>,
+        /// Draw the trajectories and the error over time into this PNG.
+        #[arg(long, value_name = "PNG")]
+        plot: Option<PathBuf>,
     },
     /// Convert a recording's trajectory to a TUM file.
     ///
@@ -219,6 +222,7 @@ fn main() -> ExitCode {
             max_gap_ms,
             format,
             write_tum,
+            plot,
         } => gprflow_cli::eval::eval_command(&gprflow_cli::eval::EvalArgs {
             run,
             truth,
@@ -228,6 +232,7 @@ fn main() -> ExitCode {
             max_gap_ms,
             format,
             write_tum,
+            plot,
         }),
         Command::Convert {
             input,

@@ -1,0 +1,146 @@
+//! PNG plots for `gprflow eval --plot`: trajectories against the truth seen from above, and
+//! the error over time.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, anyhow};
+use plotters::prelude::*;
+
+/// Where Debian, Fedora and Arch put DejaVu Sans (Debian package `fonts-dejavu-core`).
+const FONT_CANDIDATES: [&str; 4] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    "/usr/share/fonts/dejavu-sans-fonts/DejaVuSans.ttf",
+];
+
+fn register_font() -> Result<()> {
+    static REGISTERED: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+    REGISTERED
+        .get_or_init(|| {
+            let path = FONT_CANDIDATES.iter().find(|p| Path::new(p).exists()).ok_or_else(|| {
+                format!(
+                    "no font for plot labels (looked for {}); install fonts-dejavu-core",
+                    FONT_CANDIDATES.join(", ")
+                )
+            })?;
+            let bytes: &'static [u8] = Box::leak(
+                std::fs::read(path)
+                    .map_err(|e| format!("{path}: {e}"))?
+                    .into_boxed_slice(),
+            );
+            plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
+                .map_err(|_| format!("{path}: not a usable font"))
+        })
+        .clone()
+        .map_err(|e| anyhow!(e))
+}
+
+/// A named series of points.
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Legend label.
+    pub label: String,
+    /// Points (x, y).
+    pub points: Vec<(f64, f64)>,
+}
+
+fn bounds(series: &[&Series]) -> (f64, f64, f64, f64) {
+    let mut b = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for s in series {
+        for &(x, y) in &s.points {
+            b = (b.0.min(x), b.1.max(x), b.2.min(y), b.3.max(y));
+        }
+    }
+    if !b.0.is_finite() {
+        return (0.0, 1.0, 0.0, 1.0);
+    }
+    let (px, py) = (0.05 * (b.1 - b.0).max(1e-3), 0.05 * (b.3 - b.2).max(1e-3));
+    (b.0 - px, b.1 + px, b.2 - py, b.3 + py)
+}
+
+const COLORS: [RGBColor; 5] = [
+    RGBColor(0, 0, 0),
+    RGBColor(214, 39, 40),
+    RGBColor(31, 119, 180),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+];
+
+/// Draws `trajectories` (x, y in metres; the first is the truth) and `errors` over time
+/// (seconds, metres) side by side into a PNG.
+///
+/// # Errors
+/// No font for labels, or the image cannot be written.
+pub fn trajectory_and_error(path: &Path, title: &str, trajectories: &[Series], errors: &[Series]) -> Result<()> {
+    register_font()?;
+    let root = BitMapBackend::new(path, (1400, 640)).into_drawing_area();
+    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    root.fill(&WHITE).map_err(|e| draw(&e))?;
+    let root = root.titled(title, ("sans-serif", 22)).map_err(|e| draw(&e))?;
+    let (left, right) = root.split_horizontally(640);
+
+    // from above, equal scales
+    let (x0, x1, y0, y1) = bounds(&trajectories.iter().collect::<Vec<_>>());
+    let span = (x1 - x0).max(y1 - y0);
+    let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+    let mut chart = ChartBuilder::on(&left)
+        .margin(12)
+        .caption("trajectory (m)", ("sans-serif", 18))
+        .x_label_area_size(36)
+        .y_label_area_size(52)
+        .build_cartesian_2d(cx - span / 2.0..cx + span / 2.0, cy - span / 2.0..cy + span / 2.0)
+        .map_err(|e| draw(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("x (m)")
+        .y_desc("y (m)")
+        .draw()
+        .map_err(|e| draw(&e))?;
+    for (i, s) in trajectories.iter().enumerate() {
+        let color = COLORS[i % COLORS.len()];
+        chart
+            .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
+            .map_err(|e| draw(&e))?
+            .label(s.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| draw(&e))?;
+
+    let (t0, t1, e0, e1) = bounds(&errors.iter().collect::<Vec<_>>());
+    let mut chart = ChartBuilder::on(&right)
+        .margin(12)
+        .caption("error over time", ("sans-serif", 18))
+        .x_label_area_size(36)
+        .y_label_area_size(60)
+        .build_cartesian_2d(t0..t1, e0.min(0.0)..e1)
+        .map_err(|e| draw(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("error (m)")
+        .draw()
+        .map_err(|e| draw(&e))?;
+    for (i, s) in errors.iter().enumerate() {
+        let color = COLORS[(i + 1) % COLORS.len()];
+        chart
+            .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
+            .map_err(|e| draw(&e))?
+            .label(s.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    root.present()
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    Ok(())
+}
