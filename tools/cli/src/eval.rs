@@ -210,7 +210,18 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         _ => None,
     };
     let (along, cross) = eval::track_errors(&a);
+    let estimated_lines = last_line_map(&run, None);
+    let true_lines = last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC));
     if let Some(png) = &args.plot {
+        let hough = |m: &Option<(String, Vec<HoughLine>)>| {
+            m.as_ref()
+                .map(|(_, l)| l.iter().map(|h| (h.rho_m, h.theta_rad)).collect())
+                .unwrap_or_default()
+        };
+        let plot_lines = crate::plot::Lines {
+            truth: hough(&true_lines),
+            estimate: hough(&estimated_lines),
+        };
         let xy = |poses: &[gprflow::eval::Pose]| {
             poses
                 .iter()
@@ -239,6 +250,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
                     points: xy(&a.estimate),
                 },
             ],
+            &plot_lines,
             &[
                 crate::plot::Series {
                     label: "position error (3-D)".into(),

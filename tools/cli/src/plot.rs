@@ -67,12 +67,50 @@ const COLORS: [RGBColor; 5] = [
     RGBColor(148, 103, 189),
 ];
 
-/// Draws `trajectories` (x, y in metres; the first is the truth) and `errors` over time
-/// (seconds, metres) side by side into a PNG.
+/// Hough lines to draw over the trajectories: true ones dashed grey, estimated ones red.
+#[derive(Debug, Clone, Default)]
+pub struct Lines {
+    /// True lines (rho m, theta rad).
+    pub truth: Vec<(f64, f64)>,
+    /// Estimated lines.
+    pub estimate: Vec<(f64, f64)>,
+}
+
+/// The part of the line x cos(theta) + y sin(theta) = rho inside a square.
+fn clip(rho: f64, theta: f64, (x0, x1, y0, y1): (f64, f64, f64, f64)) -> Option<[(f64, f64); 2]> {
+    let (c, s) = (theta.cos(), theta.sin());
+    let mut pts = Vec::new();
+    if s.abs() > 1e-9 {
+        for x in [x0, x1] {
+            let y = (rho - x * c) / s;
+            if (y0..=y1).contains(&y) {
+                pts.push((x, y));
+            }
+        }
+    }
+    if c.abs() > 1e-9 {
+        for y in [y0, y1] {
+            let x = (rho - y * s) / c;
+            if (x0..=x1).contains(&x) {
+                pts.push((x, y));
+            }
+        }
+    }
+    (pts.len() >= 2).then(|| [pts[0], pts[pts.len() - 1]])
+}
+
+/// Draws `trajectories` (x, y in metres; the first is the truth) with `lines`, and
+/// `errors` over time (seconds, metres), side by side into a PNG.
 ///
 /// # Errors
 /// No font for labels, or the image cannot be written.
-pub fn trajectory_and_error(path: &Path, title: &str, trajectories: &[Series], errors: &[Series]) -> Result<()> {
+pub fn trajectory_and_error(
+    path: &Path,
+    title: &str,
+    trajectories: &[Series],
+    lines: &Lines,
+    errors: &[Series],
+) -> Result<()> {
     register_font()?;
     let root = BitMapBackend::new(path, (1400, 640)).into_drawing_area();
     let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
@@ -97,6 +135,25 @@ pub fn trajectory_and_error(path: &Path, title: &str, trajectories: &[Series], e
         .y_desc("y (m)")
         .draw()
         .map_err(|e| draw(&e))?;
+    let square = (cx - span / 2.0, cx + span / 2.0, cy - span / 2.0, cy + span / 2.0);
+    for (set, color, label) in [
+        (&lines.truth, RGBColor(150, 150, 150), "true lines"),
+        (&lines.estimate, RGBColor(214, 39, 40), "estimated lines"),
+    ] {
+        let segments: Vec<[(f64, f64); 2]> = set.iter().filter_map(|&(r, t)| clip(r, t, square)).collect();
+        if segments.is_empty() {
+            continue;
+        }
+        chart
+            .draw_series(
+                segments
+                    .into_iter()
+                    .map(|seg| PathElement::new(seg.to_vec(), color.stroke_width(1))),
+            )
+            .map_err(|e| draw(&e))?
+            .label(label)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(1)));
+    }
     for (i, s) in trajectories.iter().enumerate() {
         let color = COLORS[i % COLORS.len()];
         chart
