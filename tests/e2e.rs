@@ -900,6 +900,21 @@ fn eval_draws_a_plot() {
         "{} bytes",
         bytes.len()
     );
+    // the radargram: one column per trace
+    let rg = dir.path().join("rg.png");
+    let o = gprflow(&[
+        "radargram",
+        rec.to_str().expect("utf8"),
+        "--to",
+        "10",
+        "-o",
+        rg.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&rg).expect("png written");
+    let width = u32::from_be_bytes([bytes[16], bytes[17], bytes[18], bytes[19]]);
+    let height = u32::from_be_bytes([bytes[20], bytes[21], bytes[22], bytes[23]]);
+    assert_eq!((width, height), (501, 201), "50 traces/s for 10 s, 201 samples");
     // no estimate in the recording: a clear error, exit 2
     let o = gprflow(&["eval", "recordings/toy.mcap"]);
     assert_eq!(o.status.code(), Some(2));

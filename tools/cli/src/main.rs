@@ -150,6 +150,25 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Draw a recording's traces as a radargram (PNG, one column per trace).
+    ///
+    /// Example: gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
+    Radargram {
+        /// Recording.
+        input: PathBuf,
+        /// Trace topic.
+        #[arg(long, default_value = "/gpr/trace")]
+        topic: String,
+        /// Start, seconds after the first trace.
+        #[arg(long, default_value_t = 0.0)]
+        from: f64,
+        /// End, seconds after the first trace.
+        #[arg(long)]
+        to: Option<f64>,
+        /// PNG to write.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Compare two recordings: exit 0 within tolerance, 1 on a regression, 2 on an error.
     ///
     /// Example: gprflow diff golden.mcap new.mcap --abs-tol 1e-6
@@ -240,6 +259,13 @@ fn main() -> ExitCode {
             topic,
             output,
         } => gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output),
+        Command::Radargram {
+            input,
+            topic,
+            from,
+            to,
+            output,
+        } => gprflow_cli::eval::radargram_command(&input, &topic, from, to, &output),
         Command::Diff {
             a,
             b,

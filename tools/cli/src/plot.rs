@@ -201,3 +201,43 @@ pub fn trajectory_and_error(
         .with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }
+
+/// Renders traces (one column each, samples down) as a grey-scale radargram: the mean
+/// trace is removed (horizontal banding), a gain growing linearly with depth applied and
+/// the 99th percentile of magnitudes mapped to full scale.
+///
+/// # Errors
+/// No traces, or the image cannot be written.
+pub fn radargram(path: &Path, traces: &[Vec<f32>]) -> Result<()> {
+    let width = traces.len();
+    let height = traces.iter().map(Vec::len).max().unwrap_or(0);
+    if width == 0 || height == 0 {
+        anyhow::bail!("no traces to draw");
+    }
+    let mut mean = vec![0.0f64; height];
+    for t in traces {
+        for (m, v) in mean.iter_mut().zip(t) {
+            *m += f64::from(*v) / width as f64;
+        }
+    }
+    let gain = |k: usize| 1.0 + 7.0 * k as f64 / height as f64;
+    let value = |t: &Vec<f32>, k: usize| t.get(k).map_or(0.0, |v| (f64::from(*v) - mean[k]) * gain(k));
+    let mut magnitudes: Vec<f64> = traces
+        .iter()
+        .flat_map(|t| (0..height).map(move |k| value(t, k).abs()))
+        .collect();
+    let at = ((magnitudes.len() as f64 * 0.99) as usize).min(magnitudes.len() - 1);
+    let scale = *magnitudes.select_nth_unstable_by(at, f64::total_cmp).1;
+    let scale = if scale > 0.0 { scale } else { 1.0 };
+    let root = BitMapBackend::new(path, (width as u32, height as u32)).into_drawing_area();
+    for (x, t) in traces.iter().enumerate() {
+        for k in 0..height {
+            let g = (128.0 + 127.0 * (value(t, k) / scale).clamp(-1.0, 1.0)) as u8;
+            root.draw_pixel((x as i32, k as i32), &RGBColor(g, g, g))
+                .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        }
+    }
+    root.present()
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    Ok(())
+}
