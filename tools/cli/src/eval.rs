@@ -526,6 +526,52 @@ fn print_diff(
     )
 }
 
+/// Runs `gprflow radargram REC -o OUT.png`: the traces of `topic` between `from_s` and
+/// `to_s` seconds after the first one, as a picture.
+///
+/// # Errors
+/// Unreadable recording, no traces on the topic, unwritable output.
+pub fn radargram_command(input: &Path, topic: &str, from_s: f64, to_s: Option<f64>, output: &Path) -> Result<ExitCode> {
+    use gprflow::msg::{Samples, Trace};
+    let rec = Recording::open(input)?;
+    let topic = topic_name(topic);
+    let mut traces = Vec::new();
+    let mut first: Option<u64> = None;
+    let mut failure = None;
+    rec.scan(|m| {
+        if m.topic != topic || failure.is_some() {
+            return;
+        }
+        let t0 = *first.get_or_insert(m.log_time);
+        let t = (m.log_time - t0) as f64 * 1e-9;
+        if t < from_s || to_s.is_some_and(|end| t > end) {
+            return;
+        }
+        match gprflow::msg::decode::<Trace>(m.data) {
+            Ok(trace) => traces.push(match trace.samples() {
+                Samples::I16(s) => s.iter().map(|&v| f32::from(v)).collect(),
+                Samples::I32(s) => s.iter().map(|&v| v as f32).collect(),
+                Samples::F32(s) => s.to_vec(),
+            }),
+            Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
+        }
+    });
+    if let Some(f) = failure {
+        bail!(f);
+    }
+    if traces.is_empty() {
+        bail!("{}: no traces on {topic} in that time window", input.display());
+    }
+    crate::plot::radargram(output, &traces)?;
+    writeln!(
+        std::io::stdout().lock(),
+        "{} traces of {topic} drawn to {}",
+        traces.len(),
+        output.display()
+    )?;
+    Ok(ExitCode::SUCCESS)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -593,50 +639,4 @@ mod tests {
         );
         assert!((e.along_track.mean + 0.1).abs() < 1e-9);
     }
-}
-
-/// Runs `gprflow radargram REC -o OUT.png`: the traces of `topic` between `from_s` and
-/// `to_s` seconds after the first one, as a picture.
-///
-/// # Errors
-/// Unreadable recording, no traces on the topic, unwritable output.
-pub fn radargram_command(input: &Path, topic: &str, from_s: f64, to_s: Option<f64>, output: &Path) -> Result<ExitCode> {
-    use gprflow::msg::{Samples, Trace};
-    let rec = Recording::open(input)?;
-    let topic = topic_name(topic);
-    let mut traces = Vec::new();
-    let mut first: Option<u64> = None;
-    let mut failure = None;
-    rec.scan(|m| {
-        if m.topic != topic || failure.is_some() {
-            return;
-        }
-        let t0 = *first.get_or_insert(m.log_time);
-        let t = (m.log_time - t0) as f64 * 1e-9;
-        if t < from_s || to_s.is_some_and(|end| t > end) {
-            return;
-        }
-        match gprflow::msg::decode::<Trace>(m.data) {
-            Ok(trace) => traces.push(match trace.samples() {
-                Samples::I16(s) => s.iter().map(|&v| f32::from(v)).collect(),
-                Samples::I32(s) => s.iter().map(|&v| v as f32).collect(),
-                Samples::F32(s) => s.to_vec(),
-            }),
-            Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
-        }
-    });
-    if let Some(f) = failure {
-        bail!(f);
-    }
-    if traces.is_empty() {
-        bail!("{}: no traces on {topic} in that time window", input.display());
-    }
-    crate::plot::radargram(output, &traces)?;
-    writeln!(
-        std::io::stdout().lock(),
-        "{} traces of {topic} drawn to {}",
-        traces.len(),
-        output.display()
-    )?;
-    Ok(ExitCode::SUCCESS)
 }
