@@ -836,6 +836,19 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
         "1e9",
     ]);
     assert_eq!(o.status.code(), Some(1));
+    // different topic sets: a regression, each topic counted on both sides
+    let o = gprflow(&["diff", a.to_str().expect("utf8"), "recordings/toy.mcap", "--json"]);
+    assert_eq!(o.status.code(), Some(1));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("diff json");
+    let topics = report["report"]["topics"].as_array().expect("topics");
+    assert!(
+        topics.iter().any(|t| t["topic"] == "/gen/trace" && t["count_a"] == 0),
+        "{report}"
+    );
+    assert!(
+        topics.iter().any(|t| t["topic"] == "/gpr/trace" && t["count_b"] == 0),
+        "{report}"
+    );
     // not a recording: exit 2 naming the file
     let o = gprflow(&["diff", a.to_str().expect("utf8"), scenario.to_str().expect("utf8")]);
     assert_eq!(o.status.code(), Some(2));
@@ -915,6 +928,10 @@ fn eval_draws_a_plot() {
     let width = u32::from_be_bytes([bytes[16], bytes[17], bytes[18], bytes[19]]);
     let height = u32::from_be_bytes([bytes[20], bytes[21], bytes[22], bytes[23]]);
     assert_eq!((width, height), (501, 201), "50 traces/s for 10 s, 201 samples");
+    // truth from a recording that has none: a clear error, exit 2
+    let o = gprflow(&["eval", rec.to_str().expect("utf8"), "--truth", "recordings/toy.mcap"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("no ground truth on /truth/pose"), "{}", stderr(&o));
     // no estimate in the recording: a clear error, exit 2
     let o = gprflow(&["eval", "recordings/toy.mcap"]);
     assert_eq!(o.status.code(), Some(2));
