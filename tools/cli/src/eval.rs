@@ -47,6 +47,8 @@ pub struct EvalArgs {
     pub write_tum: Option<PathBuf>,
     /// Also draw trajectories and errors into this PNG.
     pub plot: Option<PathBuf>,
+    /// More pose topics of the run to draw (odometry, another estimator).
+    pub also: Vec<String>,
 }
 
 /// Picks the estimate among a recording's pose topics: the last trajectory snapshot, else
@@ -237,19 +239,27 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
             .zip(&a.truth)
             .map(|(e, t)| (e.translation.vector - t.translation.vector).norm())
             .collect();
+        let mut trajectories = vec![
+            crate::plot::Series {
+                label: format!("truth {truth_topic}"),
+                points: xy(&truth.poses),
+            },
+            crate::plot::Series {
+                label: format!("estimate {topic}"),
+                points: xy(&a.estimate),
+            },
+        ];
+        for extra in &args.also {
+            let t = Trajectory::from_recording(&run, &topic_name(extra))?;
+            trajectories.push(crate::plot::Series {
+                label: topic_name(extra),
+                points: xy(&t.poses),
+            });
+        }
         crate::plot::trajectory_and_error(
             png,
             &format!("{} against {}", topic, truth_topic),
-            &[
-                crate::plot::Series {
-                    label: format!("truth {truth_topic}"),
-                    points: xy(&truth.poses),
-                },
-                crate::plot::Series {
-                    label: format!("estimate {topic}"),
-                    points: xy(&a.estimate),
-                },
-            ],
+            &trajectories,
             &plot_lines,
             &[
                 crate::plot::Series {

@@ -133,6 +133,9 @@ enum Command {
         /// Draw the trajectories and the error over time into this PNG.
         #[arg(long, value_name = "PNG")]
         plot: Option<PathBuf>,
+        /// Another pose topic of the run to draw (odometry, ...); repeatable.
+        #[arg(long, value_name = "TOPIC")]
+        also: Vec<String>,
     },
     /// Convert a recording's trajectory to a TUM file.
     ///
@@ -242,6 +245,7 @@ fn main() -> ExitCode {
             format,
             write_tum,
             plot,
+            also,
         } => gprflow_cli::eval::eval_command(&gprflow_cli::eval::EvalArgs {
             run,
             truth,
@@ -252,6 +256,7 @@ fn main() -> ExitCode {
             format,
             write_tum,
             plot,
+            also,
         }),
         Command::Convert {
             input,
