@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Every test: formatting, lints, unit and property tests, end-to-end tests with real
-# processes, and the peer checks against the Python MCAP reader and evo (installed into .venv-peers).
+# processes, and the peer checks against the Python MCAP reader and evo (installed into
+# .venv-peers) and GTSAM (installed into .venv-gtsam).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 tools/peer/setup-venv.sh
@@ -13,4 +14,7 @@ cargo clippy --workspace --all-targets -- -D warnings
 # end-to-end tests also run the workspace's other binaries (a user's exec stage)
 cargo build --workspace --bins
 cargo nextest run --workspace --no-fail-fast
+# peer check of the estimation library: GTSAM 4.3 (installed into .venv-gtsam) re-solves the
+# committed problem and must still give the figures our test compares against
+tools/peer/gtsam_check.sh --verify
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet

@@ -1,6 +1,7 @@
 //! The `gprflow` command's library: the catalog of stages this build knows and the
 //! commands, so that `main.rs` only parses arguments.
 
+pub mod bench_estimate;
 pub mod commands;
 pub mod eval;
 pub mod plot;
@@ -8,6 +9,7 @@ pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
+use gprflow_estimate::node::EstimateStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 
 /// Every stage kind this build can run.
@@ -15,6 +17,7 @@ pub fn catalog() -> StageCatalog {
     StageCatalog::new()
         .with(describe::<ToySource>())
         .with(describe::<ToyGain>())
+        .with(describe::<EstimateStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -39,6 +42,7 @@ pub fn run_stage(
     match kind {
         ToySource::NAME => run::<ToySource>(spec, &transport, stop),
         ToyGain::NAME => run::<ToyGain>(spec, &transport, stop),
+        EstimateStage::NAME => run::<EstimateStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(

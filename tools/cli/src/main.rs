@@ -200,6 +200,35 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        which: BenchCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchCommand {
+    /// Solve a problem exported by the GTSAM peer in batch and incrementally; print final
+    /// error, ATE and per-update timings.
+    ///
+    /// Example: gprflow bench estimate problem.txt --json
+    Estimate {
+        /// Problem file (`gtsam_bench.py --export`).
+        problem: PathBuf,
+        /// Line factors: off, known (true map lines) or estimated (lines are variables).
+        #[arg(long, default_value = "off", value_parser = ["off", "known", "estimated"])]
+        lines: String,
+        /// Batch solve only.
+        #[arg(long)]
+        batch_only: bool,
+        /// Incremental smoother window, states.
+        #[arg(long, default_value_t = 30)]
+        lag: usize,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() -> ExitCode {
@@ -303,6 +332,28 @@ fn main() -> ExitCode {
             schema,
             json,
         }),
+        Command::Bench {
+            which:
+                BenchCommand::Estimate {
+                    problem,
+                    lines,
+                    batch_only,
+                    lag,
+                    json,
+                },
+        } => gprflow_cli::bench_estimate::bench_estimate(
+            &problem,
+            &gprflow_cli::bench_estimate::BenchEstimateArgs {
+                lines: match lines.as_str() {
+                    "known" => gprflow_estimate::problem::LineMode::Known,
+                    "estimated" => gprflow_estimate::problem::LineMode::Estimated,
+                    _ => gprflow_estimate::problem::LineMode::Off,
+                },
+                batch_only,
+                lag_states: lag,
+                json,
+            },
+        ),
     };
     match result {
         Ok(code) => code,

@@ -1,0 +1,361 @@
+//! The `estimate` stage: converts messages to [`OnlineEstimator`] calls and estimates back to
+//! messages. Inputs arrive merged in stamp order (the runtime's watermark merge).
+
+use gprflow::msg::{
+    Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Point, Pose, PoseStamped,
+    PoseWithCovariance, Quaternion, Registration, StateEstimate, Trajectory, Vector3 as Vector3Msg, WheelOdometry,
+};
+use gprflow::stage::{Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use nalgebra::{DMatrix, Vector2, Vector3};
+
+use crate::imu::ImuParams;
+use crate::lie::Pose3;
+use crate::online::{OnlineEstimator, OnlineParams, RegistrationMeasurement, StateOutput};
+use crate::smoother::SmootherParams;
+
+/// Parameters of the `estimate` stage.
+#[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct EstimateParams {
+    /// States per second (default 10).
+    pub state_rate_hz: f64,
+    /// Smoother window, states (default 30).
+    pub lag_states: usize,
+    /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 0.01).
+    pub acc_noise_density: f64,
+    /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 0.001).
+    pub gyro_noise_density: f64,
+    /// Accelerometer bias random walk (default 1e-3).
+    pub acc_bias_random_walk: f64,
+    /// Gyroscope bias random walk (default 1e-4).
+    pub gyro_bias_random_walk: f64,
+    /// Gravity, m/s^2 (default 9.81).
+    pub gravity_mps2: f64,
+    /// Wheel along-track sigma per state, m (default 0.02).
+    pub wheel_sigma_m: f64,
+    /// Registration along-track sigma when the message has no covariance, m (default 0.05).
+    pub registration_sigma_m: f64,
+    /// Use the registration's full relative pose, not only its along-track distance (default false).
+    pub registration_full_pose: bool,
+    /// Minimum baseline that initialises a line, m (default 1.0).
+    pub line_min_baseline_m: f64,
+    /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
+    pub nonholonomic_sigma_mps: f64,
+    /// Publish Trajectory and LineMap snapshots every this many states (default 10).
+    pub snapshot_every_states: u64,
+}
+
+impl Default for EstimateParams {
+    fn default() -> Self {
+        let o = OnlineParams::default();
+        Self {
+            state_rate_hz: o.state_rate_hz,
+            lag_states: o.smoother.lag_states,
+            acc_noise_density: o.imu.acc_noise_density,
+            gyro_noise_density: o.imu.gyro_noise_density,
+            acc_bias_random_walk: o.imu.acc_bias_random_walk,
+            gyro_bias_random_walk: o.imu.gyro_bias_random_walk,
+            gravity_mps2: -o.imu.gravity_mps2.z,
+            wheel_sigma_m: o.wheel_sigma_m,
+            registration_sigma_m: o.registration_sigma_m,
+            registration_full_pose: o.registration_full_pose,
+            line_min_baseline_m: o.line_min_baseline_m,
+            nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
+            snapshot_every_states: 10,
+        }
+    }
+}
+
+impl EstimateParams {
+    fn online(&self) -> OnlineParams {
+        OnlineParams {
+            state_rate_hz: self.state_rate_hz,
+            smoother: SmootherParams {
+                lag_states: self.lag_states,
+                ..SmootherParams::default()
+            },
+            imu: ImuParams {
+                gravity_mps2: Vector3::new(0.0, 0.0, -self.gravity_mps2),
+                acc_noise_density: self.acc_noise_density,
+                gyro_noise_density: self.gyro_noise_density,
+                acc_bias_random_walk: self.acc_bias_random_walk,
+                gyro_bias_random_walk: self.gyro_bias_random_walk,
+                ..ImuParams::default()
+            },
+            wheel_sigma_m: self.wheel_sigma_m,
+            registration_sigma_m: self.registration_sigma_m,
+            registration_full_pose: self.registration_full_pose,
+            line_min_baseline_m: self.line_min_baseline_m,
+            nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
+            ..OnlineParams::default()
+        }
+    }
+}
+
+fn param_error(key: &str, message: String) -> StageError {
+    StageError::Params(ParamError {
+        path: vec![key.to_owned()],
+        message,
+    })
+}
+
+/// The factor-graph estimator stage.
+#[derive(Debug)]
+pub struct EstimateStage {
+    params: EstimateParams,
+    est: OnlineEstimator,
+    state_out: Output<StateEstimate>,
+    trajectory_out: Output<Trajectory>,
+    line_map_out: Output<LineMap>,
+    last_stamp_ns: i64,
+}
+
+fn pose_msg(p: &Pose3) -> Pose {
+    let q = p.quaternion();
+    Pose {
+        position: Point {
+            x: p.trans_m.x,
+            y: p.trans_m.y,
+            z: p.trans_m.z,
+        },
+        orientation: Quaternion {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        },
+    }
+}
+
+fn pose_from_msg(p: &Pose) -> Pose3 {
+    let o = &p.orientation;
+    Pose3::from_quaternion(
+        [o.x, o.y, o.z, o.w],
+        Vector3::new(p.position.x, p.position.y, p.position.z),
+    )
+}
+
+/// ROS covariance `[x y z rx ry rz]` <-> ours `[rx ry rz x y z]`: the same permutation both ways.
+fn swap_rot_trans(c: &[f64; 36]) -> [f64; 36] {
+    let perm = [3, 4, 5, 0, 1, 2];
+    let mut out = [0.0; 36];
+    for r in 0..6 {
+        for k in 0..6 {
+            out[r * 6 + k] = c[perm[r] * 6 + perm[k]];
+        }
+    }
+    out
+}
+
+fn vec_msg(v: &Vector3<f64>) -> Vector3Msg {
+    Vector3Msg { x: v.x, y: v.y, z: v.z }
+}
+
+impl EstimateStage {
+    fn publish_state(&mut self, s: &StateOutput, out: &mut Outputs) -> Result<(), StageError> {
+        let mut cov = [0.0; 36];
+        if let Some(c) = &s.covariance
+            && c.nrows() == 6
+            && c.ncols() == 6
+        {
+            for r in 0..6 {
+                for k in 0..6 {
+                    cov[r * 6 + k] = c[(r, k)];
+                }
+            }
+            cov = swap_rot_trans(&cov);
+        }
+        let msg = StateEstimate {
+            header: Header::new(s.stamp_ns, "world"),
+            state_index: s.index,
+            world_from_body: PoseWithCovariance {
+                pose: pose_msg(&s.pose),
+                covariance: gprflow::msg::Covariance6(cov),
+            },
+            velocity_in_world_mps: vec_msg(&s.velocity_mps),
+            accel_bias: vec_msg(&s.bias.acc_mps2),
+            gyro_bias: vec_msg(&s.bias.gyro_radps),
+        };
+        out.send(self.state_out, &msg)?;
+        if self.params.snapshot_every_states > 0 && (s.index + 1).is_multiple_of(self.params.snapshot_every_states) {
+            self.publish_snapshots(s.stamp_ns, out)?;
+        }
+        Ok(())
+    }
+
+    fn publish_snapshots(&mut self, stamp_ns: i64, out: &mut Outputs) -> Result<(), StageError> {
+        let traj = self.est.trajectory().map_err(StageError::failed)?;
+        let msg = Trajectory {
+            header: Header::new(stamp_ns, "world"),
+            state_indices: traj.iter().map(|(i, _, _)| *i).collect(),
+            poses: traj
+                .iter()
+                .map(|(_, s, p)| PoseStamped {
+                    header: Header::new(*s, "world"),
+                    pose: pose_msg(p),
+                })
+                .collect(),
+        };
+        out.send(self.trajectory_out, &msg)?;
+        let lines = LineMap {
+            header: Header::new(stamp_ns, "world"),
+            lines: self
+                .est
+                .line_map()
+                .into_iter()
+                .map(|(id, l)| HoughLineMsg {
+                    id,
+                    rho_m: l.rho_m,
+                    theta_rad: l.theta_rad,
+                    ..HoughLineMsg::default()
+                })
+                .collect(),
+        };
+        out.send(self.line_map_out, &lines)
+    }
+}
+
+impl Stage for EstimateStage {
+    type Params = EstimateParams;
+    const NAME: &'static str = "estimate";
+    const ABOUT: &'static str =
+        "factor-graph estimation (IMU preintegration, wheel, GPR registration, lines, map fixes; fixed-lag smoother)";
+
+    fn inputs() -> InputPorts {
+        let port = |name: &str, ty: &str, optional: bool| InputSpec {
+            port: PortSpec::new(name, ty),
+            optional,
+        };
+        InputPorts::Fixed(vec![
+            port("imu", Imu::TYPE_NAME, false),
+            port("wheel", WheelOdometry::TYPE_NAME, true),
+            port("registration", Registration::TYPE_NAME, true),
+            port("line", LineObservation::TYPE_NAME, true),
+            port("map_fix", MapFix::TYPE_NAME, true),
+        ])
+    }
+
+    fn outputs(_: &Self::Params) -> Result<Vec<PortSpec>, ParamError> {
+        Ok(vec![
+            PortSpec::new("state", StateEstimate::TYPE_NAME),
+            PortSpec::new("trajectory", Trajectory::TYPE_NAME),
+            PortSpec::new("line_map", LineMap::TYPE_NAME),
+        ])
+    }
+
+    fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
+        if !(params.state_rate_hz.is_finite() && params.state_rate_hz > 0.0) {
+            return Err(param_error(
+                "state_rate_hz",
+                format!("must be > 0, got {}", params.state_rate_hz),
+            ));
+        }
+        if params.lag_states == 0 {
+            return Err(param_error("lag_states", "must be at least 1".into()));
+        }
+        Ok(Self {
+            est: OnlineEstimator::new(params.online()),
+            state_out: ports.output("state")?,
+            trajectory_out: ports.output("trajectory")?,
+            line_map_out: ports.output("line_map")?,
+            params,
+            last_stamp_ns: 0,
+        })
+    }
+
+    fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> Result<(), StageError> {
+        self.last_stamp_ns = self.last_stamp_ns.max(input.stamp_ns());
+        match input.name() {
+            "imu" => {
+                let m: Imu = input.decode()?;
+                let a = &m.linear_acceleration;
+                let w = &m.angular_velocity;
+                let state = self
+                    .est
+                    .imu(
+                        input.stamp_ns(),
+                        Vector3::new(a.x, a.y, a.z),
+                        Vector3::new(w.x, w.y, w.z),
+                    )
+                    .map_err(StageError::failed)?;
+                if let Some(s) = state {
+                    self.publish_state(&s, out)?;
+                }
+            }
+            "wheel" => {
+                let m: WheelOdometry = input.decode()?;
+                self.est.wheel(m.distance_m);
+            }
+            "registration" => {
+                let m: Registration = input.decode()?;
+                let c = swap_rot_trans(&m.covariance.0);
+                let covariance = (c.iter().any(|v| *v != 0.0)).then(|| DMatrix::from_row_slice(6, 6, &c));
+                let r = RegistrationMeasurement {
+                    reference_stamp_ns: m.reference_stamp.to_ns(),
+                    query_stamp_ns: m.query_stamp.to_ns(),
+                    relative_pose: pose_from_msg(&m.reference_from_query),
+                    along_track_m: m.along_track_m,
+                    covariance,
+                };
+                if !self.est.registration(&r).map_err(StageError::failed)? {
+                    tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
+                }
+            }
+            "line" => {
+                let m: LineObservation = input.decode()?;
+                self.est
+                    .line(input.stamp_ns(), m.line_id, m.forward_distance_m, m.sigma_m)
+                    .map_err(StageError::failed)?;
+            }
+            "map_fix" => {
+                let m: MapFix = input.decode()?;
+                let c = &m.covariance.0;
+                let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
+                let p = &m.world_from_body.position;
+                self.est
+                    .map_fix(input.stamp_ns(), Vector2::new(p.x, p.y), [sig(c[0]), sig(c[7])])
+                    .map_err(StageError::failed)?;
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
+        self.est.finish().map_err(StageError::failed)?;
+        if self.est.late_updates() > 0 {
+            tracing::warn!(
+                late = self.est.late_updates(),
+                "estimate: updates that fell behind the state rate"
+            );
+        }
+        self.publish_snapshots(self.last_stamp_ns, out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector6;
+
+    #[test]
+    fn covariance_reordering_is_its_own_inverse() {
+        let c: [f64; 36] = std::array::from_fn(|k| k as f64);
+        assert_eq!(swap_rot_trans(&swap_rot_trans(&c)), c);
+        // Our rotation variance (index 0) lands on ROS's roll variance (row 3, column 3).
+        assert_eq!(swap_rot_trans(&c)[3 * 6 + 3], c[0]);
+    }
+
+    #[test]
+    fn pose_messages_round_trip() {
+        let p = Pose3::exp(&Vector6::new(0.3, -0.2, 2.5, 1.0, -4.0, 0.5));
+        let back = pose_from_msg(&pose_msg(&p));
+        assert!(p.between(&back).log().norm() < 1e-12);
+    }
+
+    #[test]
+    fn default_params_map_onto_the_online_defaults() {
+        let o = EstimateParams::default().online();
+        assert_eq!(o, OnlineParams::default());
+    }
+}

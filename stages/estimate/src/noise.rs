@@ -1,0 +1,183 @@
+//! Gaussian noise models (as square-root information) and robust kernels.
+
+use nalgebra::{DMatrix, DVector};
+
+use crate::{Error, Result};
+
+/// An M-estimator applied to the whitened residual norm, as GTSAM's `noiseModel::Robust`:
+/// the factor's error is `loss(||r_w||)` instead of `0.5 ||r_w||^2`, and linearisation
+/// reweights the whitened system by `sqrt(weight(||r_w||))` (iteratively reweighted least squares).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RobustKernel {
+    /// Quadratic inside `k`, linear outside.
+    Huber {
+        /// Threshold on the whitened norm.
+        k: f64,
+    },
+    /// `0.5 k^2 ln(1 + x^2 / k^2)`.
+    Cauchy {
+        /// Scale on the whitened norm.
+        k: f64,
+    },
+}
+
+impl RobustKernel {
+    /// The loss of a whitened residual with norm `x`.
+    #[must_use]
+    pub fn loss(&self, x: f64) -> f64 {
+        match *self {
+            Self::Huber { k } => {
+                let a = x.abs();
+                if a <= k { 0.5 * a * a } else { k * (a - 0.5 * k) }
+            }
+            Self::Cauchy { k } => 0.5 * k * k * (1.0 + x * x / (k * k)).ln(),
+        }
+    }
+
+    /// The IRLS weight at norm `x`.
+    #[must_use]
+    pub fn weight(&self, x: f64) -> f64 {
+        match *self {
+            Self::Huber { k } => {
+                let a = x.abs();
+                if a <= k { 1.0 } else { k / a }
+            }
+            Self::Cauchy { k } => k * k / (k * k + x * x),
+        }
+    }
+}
+
+/// Gaussian measurement noise stored as an upper-triangular square-root information matrix
+/// `R` (`R^T R = Sigma^-1`), with an optional robust kernel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NoiseModel {
+    sqrt_info: DMatrix<f64>,
+    diagonal: bool,
+    kernel: Option<RobustKernel>,
+}
+
+impl NoiseModel {
+    /// Independent components with the given standard deviations.
+    ///
+    /// # Errors
+    /// [`Error::BadNoise`] for a sigma that is not positive and finite.
+    pub fn diagonal(sigmas: &[f64]) -> Result<Self> {
+        if sigmas.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(Error::BadNoise(format!("sigmas must be positive: {sigmas:?}")));
+        }
+        let d = DVector::from_iterator(sigmas.len(), sigmas.iter().map(|s| 1.0 / s));
+        Ok(Self {
+            sqrt_info: DMatrix::from_diagonal(&d),
+            diagonal: true,
+            kernel: None,
+        })
+    }
+
+    /// `dim` independent components with one standard deviation.
+    ///
+    /// # Errors
+    /// [`Error::BadNoise`] for a sigma that is not positive and finite.
+    pub fn isotropic(dim: usize, sigma: f64) -> Result<Self> {
+        Self::diagonal(&vec![sigma; dim])
+    }
+
+    /// From a full covariance matrix.
+    ///
+    /// # Errors
+    /// [`Error::BadNoise`] when the covariance is not symmetric positive definite.
+    pub fn from_covariance(cov: &DMatrix<f64>) -> Result<Self> {
+        let info = cov
+            .clone()
+            .cholesky()
+            .ok_or_else(|| Error::BadNoise("covariance is not positive definite".into()))?
+            .inverse();
+        let info = 0.5 * (&info + info.transpose());
+        let l = info
+            .cholesky()
+            .ok_or_else(|| Error::BadNoise("information is not positive definite".into()))?;
+        Ok(Self {
+            sqrt_info: l.l().transpose(),
+            diagonal: false,
+            kernel: None,
+        })
+    }
+
+    /// The same model under a robust kernel.
+    #[must_use]
+    pub fn robust(mut self, kernel: RobustKernel) -> Self {
+        self.kernel = Some(kernel);
+        self
+    }
+
+    /// Residual dimension.
+    #[must_use]
+    pub fn dim(&self) -> usize {
+        self.sqrt_info.nrows()
+    }
+
+    /// The robust kernel, if any.
+    #[must_use]
+    pub fn kernel(&self) -> Option<RobustKernel> {
+        self.kernel
+    }
+
+    /// `R r`.
+    #[must_use]
+    pub fn whiten(&self, r: &DVector<f64>) -> DVector<f64> {
+        if self.diagonal {
+            r.component_mul(&self.sqrt_info.diagonal())
+        } else {
+            &self.sqrt_info * r
+        }
+    }
+
+    /// `R J` in place.
+    pub fn whiten_jacobian(&self, j: &mut DMatrix<f64>) {
+        if self.diagonal {
+            for (row, s) in self.sqrt_info.diagonal().iter().enumerate() {
+                j.row_mut(row).scale_mut(*s);
+            }
+        } else {
+            *j = &self.sqrt_info * &*j;
+        }
+    }
+
+    /// The factor error of an unwhitened residual: `0.5 ||R r||^2`, or the kernel's loss.
+    #[must_use]
+    pub fn error(&self, r: &DVector<f64>) -> f64 {
+        let d2 = self.whiten(r).norm_squared();
+        match self.kernel {
+            Some(k) => k.loss(d2.sqrt()),
+            None => 0.5 * d2,
+        }
+    }
+
+    /// The IRLS scale `sqrt(weight)` for a whitened residual.
+    #[must_use]
+    pub fn robust_scale(&self, whitened: &DVector<f64>) -> f64 {
+        self.kernel.map_or(1.0, |k| k.weight(whitened.norm()).sqrt())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn full_covariance_whitens_to_unit() {
+        let cov = DMatrix::from_row_slice(2, 2, &[4.0, 1.0, 1.0, 2.0]);
+        let n = NoiseModel::from_covariance(&cov).expect("spd");
+        let r = DVector::from_vec(vec![1.0, -2.0]);
+        let expected = 0.5 * (r.transpose() * cov.clone().try_inverse().expect("inv") * &r)[0];
+        assert!((n.error(&r) - expected).abs() < 1e-12);
+    }
+
+    #[test]
+    fn huber_is_continuous_and_linear_outside() {
+        let h = RobustKernel::Huber { k: 1.345 };
+        assert!((h.loss(1.345 - 1e-9) - h.loss(1.345 + 1e-9)).abs() < 1e-8);
+        assert!((h.loss(10.0) - h.loss(9.0) - 1.345).abs() < 1e-12);
+        let c = RobustKernel::Cauchy { k: 1.0 };
+        assert!(c.loss(100.0) < 5.0);
+    }
+}

@@ -1,0 +1,487 @@
+//! Online estimation from time-stamped measurements: creates states at a fixed rate, turns
+//! IMU, wheel, GPR registration, line and prior-map measurements into factors, and runs the
+//! [`FixedLagSmoother`] once per state. Plain code: the `estimate` stage only converts messages.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use nalgebra::{DMatrix, Vector2, Vector3};
+
+use crate::Result;
+use crate::factors::{
+    AlongTrack, BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, VectorPrior,
+};
+use crate::graph::FactorGraph;
+use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
+use crate::lie::Pose3;
+use crate::lines::initial_line;
+use crate::noise::{NoiseModel, RobustKernel};
+use crate::smoother::{FixedLagSmoother, SmootherParams};
+use crate::values::{HoughLine, ImuBias, Values, VarId, Variable};
+
+/// Settings of the online estimator.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OnlineParams {
+    /// States per second.
+    pub state_rate_hz: f64,
+    /// Smoother settings.
+    pub smoother: SmootherParams,
+    /// IMU noise and gravity.
+    pub imu: ImuParams,
+    /// Sigma of the wheel along-track distance between consecutive states, m.
+    pub wheel_sigma_m: f64,
+    /// Sigma of a GPR along-track registration when the message carries none, m.
+    pub registration_sigma_m: f64,
+    /// Use a registration's full relative pose instead of its along-track distance.
+    pub registration_full_pose: bool,
+    /// Huber threshold on registrations (whitened); 0 for none.
+    pub registration_huber_k: f64,
+    /// Minimum baseline between the two observations that initialise a line, m.
+    pub line_min_baseline_m: f64,
+    /// Prior sigma on a new line's `(rho, theta)`.
+    pub line_prior_sigma: f64,
+    /// Sigma of the ground-vehicle constraint on lateral and vertical body velocity, m/s (0: off).
+    pub nonholonomic_sigma_mps: f64,
+    /// Prior sigmas on the first state: pose (rad and m), velocity (m/s), bias.
+    pub first_state_sigmas: [f64; 3],
+}
+
+impl Default for OnlineParams {
+    fn default() -> Self {
+        Self {
+            state_rate_hz: 10.0,
+            smoother: SmootherParams::default(),
+            imu: ImuParams::default(),
+            wheel_sigma_m: 0.02,
+            registration_sigma_m: 0.05,
+            registration_full_pose: false,
+            registration_huber_k: 1.345,
+            line_min_baseline_m: 1.0,
+            line_prior_sigma: 1.0,
+            nonholonomic_sigma_mps: 0.1,
+            first_state_sigmas: [1e-3, 0.1, 0.1],
+        }
+    }
+}
+
+/// A GPR registration between the states nearest two stamps.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RegistrationMeasurement {
+    /// Stamp of the reference submap.
+    pub reference_stamp_ns: i64,
+    /// Stamp of the query submap.
+    pub query_stamp_ns: i64,
+    /// `reference_from_query`.
+    pub relative_pose: Pose3,
+    /// Along-track distance, m.
+    pub along_track_m: f64,
+    /// Covariance `[rot x3, trans x3]` of the relative pose, if known.
+    pub covariance: Option<DMatrix<f64>>,
+}
+
+/// One state's estimate, as published.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateOutput {
+    /// Index of the state.
+    pub index: u64,
+    /// Stamp of the state, ns.
+    pub stamp_ns: i64,
+    /// Pose.
+    pub pose: Pose3,
+    /// Velocity in the world, m/s.
+    pub velocity_mps: Vector3<f64>,
+    /// IMU bias.
+    pub bias: ImuBias,
+    /// Pose covariance `[rot x3, trans x3]` given the older states, if computed.
+    pub covariance: Option<DMatrix<f64>>,
+    /// Wall time of the update, s.
+    pub update_s: f64,
+}
+
+#[derive(Debug, Default)]
+struct PendingLine {
+    var: Option<VarId>,
+    /// Observations before the line had a variable: `(state, distance, sigma)`.
+    buffered: Vec<(usize, f64, f64)>,
+}
+
+/// The online estimator (see the module docs).
+#[derive(Debug)]
+pub struct OnlineEstimator {
+    params: OnlineParams,
+    graph: FactorGraph,
+    values: Values,
+    smoother: FixedLagSmoother,
+    states: Vec<NavKeys>,
+    stamps_ns: Vec<i64>,
+    pim: Option<ImuPreintegration>,
+    last_imu: Option<(i64, Vector3<f64>, Vector3<f64>)>,
+    wheel_distance_m: Option<f64>,
+    wheel_at_state: Option<f64>,
+    lines: HashMap<u32, PendingLine>,
+    late_updates: u64,
+}
+
+impl OnlineEstimator {
+    /// A new estimator.
+    #[must_use]
+    pub fn new(params: OnlineParams) -> Self {
+        Self {
+            smoother: FixedLagSmoother::new(params.smoother),
+            params,
+            graph: FactorGraph::new(),
+            values: Values::new(),
+            states: Vec::new(),
+            stamps_ns: Vec::new(),
+            pim: None,
+            last_imu: None,
+            wheel_distance_m: None,
+            wheel_at_state: None,
+            lines: HashMap::new(),
+            late_updates: 0,
+        }
+    }
+
+    fn period_ns(&self) -> i64 {
+        (1e9 / self.params.state_rate_hz.max(1e-3)).round() as i64
+    }
+
+    /// Updates that took longer than a state period (the estimator fell behind).
+    #[must_use]
+    pub fn late_updates(&self) -> u64 {
+        self.late_updates
+    }
+
+    /// Number of states.
+    #[must_use]
+    pub fn state_count(&self) -> usize {
+        self.states.len()
+    }
+
+    /// Feeds one IMU sample; returns the state it completes, if any.
+    ///
+    /// # Errors
+    /// A solver failure.
+    pub fn imu(
+        &mut self,
+        stamp_ns: i64,
+        acc_mps2: Vector3<f64>,
+        gyro_radps: Vector3<f64>,
+    ) -> Result<Option<StateOutput>> {
+        let mut out = None;
+        if self.states.is_empty() {
+            out = Some(self.add_state(stamp_ns)?);
+        } else if let Some((t0, a, w)) = self.last_imu {
+            if stamp_ns > t0
+                && let Some(pim) = &mut self.pim
+            {
+                pim.integrate(&a, &w, (stamp_ns - t0) as f64 * 1e-9)?;
+            }
+            let last = self.stamps_ns.last().copied().unwrap_or(stamp_ns);
+            if stamp_ns - last >= self.period_ns() {
+                out = Some(self.add_state(stamp_ns)?);
+            }
+        }
+        self.last_imu = Some((stamp_ns, acc_mps2, gyro_radps));
+        Ok(out)
+    }
+
+    /// Feeds a cumulative wheel distance, m.
+    pub fn wheel(&mut self, distance_m: f64) {
+        if distance_m.is_finite() {
+            self.wheel_distance_m = Some(distance_m);
+        }
+    }
+
+    fn nearest_state(&self, stamp_ns: i64) -> Option<usize> {
+        let k = self.stamps_ns.partition_point(|s| *s < stamp_ns);
+        let cand = [k.checked_sub(1), (k < self.stamps_ns.len()).then_some(k)];
+        let best = cand
+            .into_iter()
+            .flatten()
+            .min_by_key(|i| (self.stamps_ns[*i] - stamp_ns).abs())?;
+        ((self.stamps_ns[best] - stamp_ns).abs() <= self.period_ns()).then_some(best)
+    }
+
+    /// Adds a GPR registration; `false` when its stamps match no states.
+    ///
+    /// # Errors
+    /// A bad covariance.
+    pub fn registration(&mut self, r: &RegistrationMeasurement) -> Result<bool> {
+        let (Some(i), Some(j)) = (
+            self.nearest_state(r.reference_stamp_ns),
+            self.nearest_state(r.query_stamp_ns),
+        ) else {
+            return Ok(false);
+        };
+        if i == j {
+            return Ok(false);
+        }
+        let (pi, pj) = (self.states[i].pose, self.states[j].pose);
+        let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
+            k: self.params.registration_huber_k,
+        });
+        let cov = r.covariance.as_ref().filter(|c| c.nrows() == 6 && c.ncols() == 6);
+        if self.params.registration_full_pose {
+            let mut noise = match cov.map(NoiseModel::from_covariance) {
+                Some(Ok(n)) => n,
+                _ => NoiseModel::diagonal(&[0.01, 0.01, 0.01, self.params.registration_sigma_m, 0.05, 0.05])?,
+            };
+            if let Some(k) = huber {
+                noise = noise.robust(k);
+            }
+            self.graph.add(BetweenPose::new(pi, pj, r.relative_pose, noise)?);
+        } else {
+            let sigma = cov.map(|c| c[(3, 3)].sqrt()).filter(|s| s.is_finite() && *s > 0.0);
+            let mut noise = NoiseModel::isotropic(1, sigma.unwrap_or(self.params.registration_sigma_m))?;
+            if let Some(k) = huber {
+                noise = noise.robust(k);
+            }
+            self.graph.add(AlongTrack::new(pi, pj, r.along_track_m, noise)?);
+        }
+        Ok(true)
+    }
+
+    /// Adds a line observation from the state nearest `stamp_ns`; `false` when none matches.
+    ///
+    /// # Errors
+    /// A bad sigma.
+    pub fn line(&mut self, stamp_ns: i64, line_id: u32, distance_m: f64, sigma_m: f64) -> Result<bool> {
+        let Some(s) = self.nearest_state(stamp_ns) else {
+            return Ok(false);
+        };
+        let sigma = if sigma_m.is_finite() && sigma_m > 0.0 {
+            sigma_m
+        } else {
+            0.05
+        };
+        let pose = self.states[s].pose;
+        let entry = self.lines.entry(line_id).or_default();
+        if let Some(var) = entry.var {
+            self.graph.add(LineDistance::new(
+                pose,
+                var,
+                distance_m,
+                NoiseModel::isotropic(1, sigma)?,
+            )?);
+            return Ok(true);
+        }
+        entry.buffered.push((s, distance_m, sigma));
+        let obs: Vec<(Pose3, f64)> = entry
+            .buffered
+            .iter()
+            .filter_map(|(st, z, _)| self.values.pose(self.states[*st].pose).ok().map(|p| (*p, *z)))
+            .collect();
+        if let Some(init) = initial_line(&obs, self.params.line_min_baseline_m) {
+            let var = self.values.push(Variable::Line(init));
+            self.graph.add(VectorPrior::line(
+                var,
+                init,
+                NoiseModel::isotropic(2, self.params.line_prior_sigma)?,
+            )?);
+            let entry = self.lines.entry(line_id).or_default();
+            entry.var = Some(var);
+            for (st, z, sg) in std::mem::take(&mut entry.buffered) {
+                self.graph.add(LineDistance::new(
+                    self.states[st].pose,
+                    var,
+                    z,
+                    NoiseModel::isotropic(1, sg)?,
+                )?);
+            }
+        }
+        Ok(true)
+    }
+
+    /// Adds a prior-map (or GPS) position fix on the ground plane for the state nearest `stamp_ns`.
+    ///
+    /// # Errors
+    /// A bad sigma.
+    pub fn map_fix(&mut self, stamp_ns: i64, xy_m: Vector2<f64>, sigma_xy_m: [f64; 2]) -> Result<bool> {
+        let Some(s) = self.nearest_state(stamp_ns) else {
+            return Ok(false);
+        };
+        let noise = NoiseModel::diagonal(&sigma_xy_m)?;
+        self.graph.add(PositionFix::new(
+            self.states[s].pose,
+            Vector3::new(xy_m.x, xy_m.y, 0.0),
+            PositionAxes::Xy,
+            noise,
+        )?);
+        Ok(true)
+    }
+
+    fn add_state(&mut self, stamp_ns: i64) -> Result<StateOutput> {
+        let start = Instant::now();
+        let i = self.states.len();
+        let keys = if let Some(prev) = self.states.last().copied() {
+            let bias = *self.values.bias(prev.bias)?;
+            let pim = self
+                .pim
+                .take()
+                .unwrap_or_else(|| ImuPreintegration::new(self.params.imu, bias));
+            let (pose, vel) = pim.predict(
+                self.values.pose(prev.pose)?,
+                self.values.velocity(prev.velocity)?,
+                &bias,
+            );
+            let keys = self.push_state(pose, vel, bias);
+            if pim.delta_t_s() > 0.0 {
+                self.graph.add(CombinedImuFactor::new(prev, keys, pim)?);
+            } else {
+                self.graph.add(crate::factors::BiasRandomWalk::new(
+                    prev.bias,
+                    keys.bias,
+                    NoiseModel::isotropic(6, 1e-3)?,
+                )?);
+            }
+            if let (Some(now), Some(before)) = (self.wheel_distance_m, self.wheel_at_state) {
+                let noise = NoiseModel::isotropic(1, self.params.wheel_sigma_m)?;
+                self.graph
+                    .add(AlongTrack::new(prev.pose, keys.pose, now - before, noise)?);
+            }
+            keys
+        } else {
+            let keys = self.push_state(Pose3::identity(), Vector3::zeros(), ImuBias::default());
+            let [sp, sv, sb] = self.params.first_state_sigmas;
+            self.graph.add(PosePrior::new(
+                keys.pose,
+                Pose3::identity(),
+                NoiseModel::isotropic(6, sp)?,
+            )?);
+            self.graph.add(VectorPrior::velocity(
+                keys.velocity,
+                Vector3::zeros(),
+                NoiseModel::isotropic(3, sv)?,
+            )?);
+            self.graph.add(VectorPrior::bias(
+                keys.bias,
+                ImuBias::default(),
+                NoiseModel::isotropic(6, sb)?,
+            )?);
+            keys
+        };
+        if self.params.nonholonomic_sigma_mps > 0.0 {
+            let noise = NoiseModel::isotropic(2, self.params.nonholonomic_sigma_mps)?;
+            self.graph.add(NonHolonomic::new(keys.pose, keys.velocity, noise)?);
+        }
+        self.wheel_at_state = self.wheel_distance_m;
+        self.stamps_ns.push(stamp_ns);
+        let bias = *self.values.bias(keys.bias)?;
+        self.pim = Some(ImuPreintegration::new(self.params.imu, bias));
+        self.smoother
+            .update(&self.graph, &mut self.values, &[keys.pose, keys.velocity, keys.bias])?;
+        let update_s = start.elapsed().as_secs_f64();
+        if update_s * self.params.state_rate_hz > 1.0 {
+            self.late_updates += 1;
+            tracing::warn!(
+                state = i,
+                update_ms = update_s * 1e3,
+                "estimate: update slower than the state period"
+            );
+        }
+        Ok(StateOutput {
+            index: i as u64,
+            stamp_ns,
+            pose: *self.values.pose(keys.pose)?,
+            velocity_mps: *self.values.velocity(keys.velocity)?,
+            bias: *self.values.bias(keys.bias)?,
+            covariance: self.smoother.newest_covariance().cloned(),
+            update_s,
+        })
+    }
+
+    fn push_state(&mut self, pose: Pose3, vel: Vector3<f64>, bias: ImuBias) -> NavKeys {
+        let keys = NavKeys {
+            pose: self.values.push(Variable::Pose(pose)),
+            velocity: self.values.push(Variable::Velocity(vel)),
+            bias: self.values.push(Variable::Bias(bias)),
+        };
+        self.states.push(keys);
+        keys
+    }
+
+    /// Every state's `(index, stamp, pose)`.
+    ///
+    /// # Errors
+    /// Never for a consistent estimator.
+    pub fn trajectory(&self) -> Result<Vec<(u64, i64, Pose3)>> {
+        self.states
+            .iter()
+            .zip(&self.stamps_ns)
+            .enumerate()
+            .map(|(i, (k, s))| Ok((i as u64, *s, *self.values.pose(k.pose)?)))
+            .collect()
+    }
+
+    /// Every initialised line `(id, line)`, by id.
+    #[must_use]
+    pub fn line_map(&self) -> Vec<(u32, HoughLine)> {
+        let mut out: Vec<(u32, HoughLine)> = self
+            .lines
+            .iter()
+            .filter_map(|(id, l)| l.var.and_then(|v| self.values.line(v).ok()).map(|line| (*id, *line)))
+            .collect();
+        out.sort_by_key(|(id, _)| *id);
+        out
+    }
+
+    /// Ends the run with a full solve of the whole graph.
+    ///
+    /// # Errors
+    /// A solver failure.
+    pub fn finish(&mut self) -> Result<()> {
+        if !self.states.is_empty() {
+            self.smoother.finish(&self.graph, &mut self.values)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A robot driving a circle at 1 m/s, z up, 200 Hz IMU without noise; wheel odometry.
+    #[test]
+    fn tracks_a_circle_from_imu_and_wheel() {
+        let params = OnlineParams {
+            smoother: SmootherParams {
+                background: false,
+                ..SmootherParams::default()
+            },
+            // The run starts moving: a weak velocity prior, the wheel fixes the speed.
+            first_state_sigmas: [1e-3, 10.0, 0.1],
+            ..OnlineParams::default()
+        };
+        let mut est = OnlineEstimator::new(params);
+        let (radius, speed) = (10.0, 1.0);
+        let omega = speed / radius;
+        let dt_ns = 5_000_000i64;
+        let mut states = 0;
+        for k in 0..=2000i64 {
+            let t = k as f64 * dt_ns as f64 * 1e-9;
+            // Body x along the velocity, centripetal acceleration along body y; at rest the
+            // accelerometer reads +g up.
+            let acc = Vector3::new(0.0, speed * omega, 9.81);
+            let gyro = Vector3::new(0.0, 0.0, omega);
+            est.wheel(speed * t);
+            if est.imu(k * dt_ns, acc, gyro).expect("imu").is_some() {
+                states += 1;
+            }
+        }
+        assert!(states >= 90, "{states} states");
+        est.finish().expect("finish");
+        assert_eq!(est.late_updates(), 0);
+        let traj = est.trajectory().expect("trajectory");
+        assert_eq!(traj.len(), states);
+        let (_, stamp_ns, last) = traj[traj.len() - 1];
+        let angle = omega * stamp_ns as f64 * 1e-9;
+        let truth = Vector3::new(radius * angle.sin(), radius * (1.0 - angle.cos()), 0.0);
+        assert!(
+            (last.trans_m - truth).norm() < 0.5,
+            "end {:?} truth {truth:?}",
+            last.trans_m
+        );
+    }
+}

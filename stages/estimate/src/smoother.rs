@@ -1,0 +1,359 @@
+//! The incremental smoother: one update per new state, bounded work per update.
+//!
+//! # Why a fixed-lag window plus background full re-solves, and not iSAM2
+//!
+//! iSAM2 re-eliminates the part of its Bayes tree that a new factor touches. That is cheap for
+//! odometry but a loop closure reaches back to an old state and invalidates everything on the
+//! path from there to the root: the update that carries it pays for a large re-factorisation
+//! (GTSAM's iSAM2 on the peer problem: p99 50 ms, max 93 ms at N=2000), and periodic
+//! relinearisation adds further spikes. The pipeline's contract is a bounded latency per
+//! state, so this smoother separates the two jobs:
+//!
+//! - **On the critical path**, each update solves only a window of the newest
+//!   [`SmootherParams::lag_states`] states (a few Levenberg-Marquardt iterations on faer sparse
+//!   Cholesky, reusing the symbolic factorisation while the window's shape stays the same).
+//!   Older states are held at their current estimate: factors that reach them (the IMU and
+//!   odometry factor into the window, loop closures) condition the window on them. Work per
+//!   update is bounded by the window, not by the length of the run.
+//! - **Off the critical path**, a factor that reaches behind the window (a loop closure) starts
+//!   a full batch solve of the whole graph on a background thread from a snapshot (factors are
+//!   shared, so the snapshot costs one copy of the values). When it finishes, the next update
+//!   merges it: every variable of the snapshot takes the full solution and the states added
+//!   since are moved by the rigid correction of the snapshot's newest pose, as loop-closing
+//!   threads of visual SLAM systems do. A loop closure that arrives while a solve runs is
+//!   picked up by the next solve.
+//!
+//! Known limitation: states leaving the window are conditioned on, not marginalised, so the
+//! window's covariance (and [`FixedLagSmoother::newest_covariance`]) is the covariance given
+//! the older states, smaller than the true marginal. Marginalising the window's tail into a
+//! dense prior (a Schur complement at the departing state) is the step after this one.
+
+use std::collections::BTreeSet;
+use std::sync::mpsc;
+use std::time::Instant;
+
+use nalgebra::DMatrix;
+
+use crate::batch::{LmParams, LmReport, levenberg_marquardt, levenberg_marquardt_keep_hessian};
+use crate::graph::FactorGraph;
+use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
+use crate::values::{Values, VarId, Variable};
+use crate::{Error, Result};
+
+/// Smoother settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SmootherParams {
+    /// States solved per update (the window).
+    pub lag_states: usize,
+    /// Levenberg-Marquardt iterations per update at most.
+    pub iterations_per_update: usize,
+    /// Full re-solves on a background thread (`false`: in the update that needs one; for
+    /// deterministic tests and offline runs).
+    pub background: bool,
+    /// Settings of the full re-solves.
+    pub full_solve: LmParams,
+    /// Compute the newest state's covariance after each update.
+    pub newest_covariance: bool,
+}
+
+impl Default for SmootherParams {
+    fn default() -> Self {
+        Self {
+            lag_states: 30,
+            iterations_per_update: 3,
+            background: true,
+            full_solve: LmParams {
+                max_iterations: 20,
+                ..LmParams::default()
+            },
+            newest_covariance: true,
+        }
+    }
+}
+
+/// What a finished full re-solve did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FullSolveReport {
+    /// States in the snapshot.
+    pub states: usize,
+    /// The optimiser's report.
+    pub lm: LmReport,
+    /// From snapshot to merge, seconds (includes waiting for the next update).
+    pub latency_s: f64,
+}
+
+/// What one update did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UpdateReport {
+    /// The window solve.
+    pub window: LmReport,
+    /// True when this update started a full re-solve.
+    pub started_full_solve: bool,
+    /// A full re-solve merged in this update.
+    pub merged: Option<FullSolveReport>,
+}
+
+struct Running {
+    rx: mpsc::Receiver<Result<(Values, LmReport)>>,
+    started: Instant,
+    states: usize,
+    vars: usize,
+    newest_pose: Option<VarId>,
+}
+
+impl std::fmt::Debug for Running {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Running")
+            .field("states", &self.states)
+            .field("vars", &self.vars)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Fixed-lag smoother with background full re-solves (see the module docs).
+#[derive(Debug)]
+pub struct FixedLagSmoother {
+    params: SmootherParams,
+    states: Vec<Vec<VarId>>,
+    state_of: Vec<Option<usize>>,
+    factors_of: Vec<Vec<usize>>,
+    known_factors: usize,
+    full_solve_wanted: bool,
+    structure: Option<HessianStructure>,
+    running: Option<Running>,
+    newest_cov: Option<DMatrix<f64>>,
+}
+
+impl FixedLagSmoother {
+    /// An empty smoother.
+    #[must_use]
+    pub fn new(params: SmootherParams) -> Self {
+        Self {
+            params,
+            states: Vec::new(),
+            state_of: Vec::new(),
+            factors_of: Vec::new(),
+            known_factors: 0,
+            full_solve_wanted: false,
+            structure: None,
+            running: None,
+            newest_cov: None,
+        }
+    }
+
+    /// The settings.
+    #[must_use]
+    pub fn params(&self) -> &SmootherParams {
+        &self.params
+    }
+
+    /// Number of states so far.
+    #[must_use]
+    pub fn state_count(&self) -> usize {
+        self.states.len()
+    }
+
+    /// Covariance of the newest state's first variable (its pose) after the last update.
+    #[must_use]
+    pub fn newest_covariance(&self) -> Option<&DMatrix<f64>> {
+        self.newest_cov.as_ref()
+    }
+
+    /// True while a full re-solve runs in the background.
+    #[must_use]
+    pub fn full_solve_running(&self) -> bool {
+        self.running.is_some()
+    }
+
+    fn window_start(&self) -> usize {
+        self.states.len().saturating_sub(self.params.lag_states.max(1))
+    }
+
+    fn register(&mut self, graph: &FactorGraph, values: &Values, new_state: &[VarId]) -> Result<()> {
+        self.state_of.resize(values.len(), None);
+        self.factors_of.resize(values.len(), Vec::new());
+        if !new_state.is_empty() {
+            let s = self.states.len();
+            for v in new_state {
+                *self.state_of.get_mut(v.0).ok_or(Error::UnknownVariable(v.0))? = Some(s);
+            }
+            self.states.push(new_state.to_vec());
+        }
+        let start = self.window_start();
+        for fi in self.known_factors..graph.len() {
+            for k in graph.factors()[fi].keys() {
+                let list = self.factors_of.get_mut(k.0).ok_or(Error::UnknownVariable(k.0))?;
+                list.push(fi);
+                if self.state_of[k.0].is_some_and(|s| s < start) {
+                    self.full_solve_wanted = true;
+                }
+            }
+        }
+        self.known_factors = graph.len();
+        Ok(())
+    }
+
+    /// Adds the new state's variables (already in `values`) and every factor added to `graph`
+    /// since the last update, then solves the window. Merges a finished background solve first.
+    ///
+    /// # Errors
+    /// A factor that cannot be evaluated, or a failed full solve.
+    pub fn update(&mut self, graph: &FactorGraph, values: &mut Values, new_state: &[VarId]) -> Result<UpdateReport> {
+        let merged = self.poll(values, false)?;
+        self.register(graph, values, new_state)?;
+        let window = self.solve_window(graph, values)?;
+        let mut started = false;
+        if self.full_solve_wanted && self.running.is_none() {
+            self.full_solve_wanted = false;
+            started = true;
+            self.start_full_solve(graph, values);
+        }
+        let merged = match merged {
+            Some(m) => Some(m),
+            None if !self.params.background => self.poll(values, true)?,
+            None => None,
+        };
+        Ok(UpdateReport {
+            window,
+            started_full_solve: started,
+            merged,
+        })
+    }
+
+    fn solve_window(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
+        let start = self.window_start();
+        let mut free: Vec<VarId> = self.states[start..].iter().flatten().copied().collect();
+        let mut factors = BTreeSet::new();
+        for v in &free {
+            factors.extend(self.factors_of[v.0].iter().copied());
+        }
+        let factors: Vec<usize> = factors.into_iter().collect();
+        // Variables of no state (map lines) are solved with the window when it observes them.
+        let mut globals = BTreeSet::new();
+        for &fi in &factors {
+            for k in graph.factors()[fi].keys() {
+                if self.state_of.get(k.0).copied().flatten().is_none() {
+                    globals.insert(*k);
+                }
+            }
+        }
+        free.extend(globals);
+        let ordering = Ordering::free(values, &free);
+        let lm = LmParams {
+            max_iterations: self.params.iterations_per_update,
+            ..self.params.full_solve
+        };
+        let (report, ne) =
+            levenberg_marquardt_keep_hessian(graph, &factors, values, &ordering, &lm, &mut self.structure)?;
+        self.newest_cov = None;
+        // From the solver's last linearisation (at most one accepted step from the solution).
+        if self.params.newest_covariance
+            && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
+            && let Ok(f) = Factorization::new(st, &ne.hessian, 0.0)
+        {
+            self.newest_cov = Some(marginal_covariance(&f, &ordering, *newest)?);
+        }
+        Ok(report)
+    }
+
+    fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values) {
+        let snapshot_graph = graph.clone();
+        let mut snapshot_values = values.clone();
+        let params = self.params.full_solve;
+        let (tx, rx) = mpsc::sync_channel(1);
+        let job = move || {
+            let all: Vec<usize> = (0..snapshot_graph.len()).collect();
+            let ordering = Ordering::all(&snapshot_values);
+            let r = levenberg_marquardt(
+                &snapshot_graph,
+                &all,
+                &mut snapshot_values,
+                &ordering,
+                &params,
+                &mut None,
+            );
+            // The receiver may be gone (smoother dropped); nothing to do then.
+            let _ = tx.send(r.map(|rep| (snapshot_values, rep)));
+        };
+        self.running = Some(Running {
+            rx,
+            started: Instant::now(),
+            states: self.states.len(),
+            vars: values.len(),
+            newest_pose: self.states.last().and_then(|s| s.first()).copied(),
+        });
+        if self.params.background {
+            let spawned = std::thread::Builder::new()
+                .name("estimate-full-solve".into())
+                .spawn(job);
+            if let Err(e) = spawned {
+                tracing::warn!("cannot start the background solve ({e}); skipping it");
+                self.running = None;
+            }
+        } else {
+            job();
+        }
+    }
+
+    /// Merges a finished full solve; with `wait`, waits for a running one.
+    fn poll(&mut self, values: &mut Values, wait: bool) -> Result<Option<FullSolveReport>> {
+        let Some(run) = &self.running else { return Ok(None) };
+        let got = if wait {
+            run.rx
+                .recv()
+                .map_err(|_| Error::LinearSolve("background solve thread ended without a result".into()))
+        } else {
+            match run.rx.try_recv() {
+                Ok(r) => Ok(r),
+                Err(mpsc::TryRecvError::Empty) => return Ok(None),
+                Err(mpsc::TryRecvError::Disconnected) => Err(Error::LinearSolve(
+                    "background solve thread ended without a result".into(),
+                )),
+            }
+        };
+        let Some(run) = self.running.take() else {
+            return Ok(None);
+        };
+        let (solved, lm) = got??;
+        // Rigid correction of the snapshot's newest pose, applied to the states added since.
+        let correction = match run.newest_pose {
+            Some(id) => match (values.get(id)?, solved.get(id)?) {
+                (Variable::Pose(now), Variable::Pose(full)) => Some(full.compose(&now.inverse())),
+                _ => None,
+            },
+            None => None,
+        };
+        for (k, v) in solved.as_slice().iter().enumerate().take(run.vars) {
+            values.set(VarId(k), *v)?;
+        }
+        if let Some(c) = correction {
+            for s in &self.states[run.states..] {
+                for id in s {
+                    let moved = match values.get(*id)? {
+                        Variable::Pose(p) => Variable::Pose(c.compose(p)),
+                        Variable::Velocity(v) => Variable::Velocity(c.rot * v),
+                        other => *other,
+                    };
+                    values.set(*id, moved)?;
+                }
+            }
+        }
+        Ok(Some(FullSolveReport {
+            states: run.states,
+            lm,
+            latency_s: run.started.elapsed().as_secs_f64(),
+        }))
+    }
+
+    /// Ends a run: waits for a running background solve, merges it, and solves the whole graph
+    /// once more (warm-started), returning that solve's report.
+    ///
+    /// # Errors
+    /// A factor that cannot be evaluated.
+    pub fn finish(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
+        self.poll(values, true)?;
+        let all: Vec<usize> = (0..graph.len()).collect();
+        let ordering = Ordering::all(values);
+        levenberg_marquardt(graph, &all, values, &ordering, &self.params.full_solve, &mut None)
+    }
+}

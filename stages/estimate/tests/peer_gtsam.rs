@@ -1,0 +1,79 @@
+//! Peer test: our batch and incremental solutions of a problem exported by the GTSAM peer
+//! against GTSAM 4.3's Levenberg-Marquardt on the same file.
+//!
+//! The fixture is regenerated (never edited) by `tools/peer/gtsam_check.sh`, which installs
+//! GTSAM into `.venv-gtsam`, exports the problem with `shared/peers/gtsam/gtsam_bench.py 300
+//! --lap 100` and solves it with `tools/peer/gtsam_solve.py`.
+
+use std::path::Path;
+
+use gprflow_estimate::bench::run;
+use gprflow_estimate::problem::{LineMode, Problem};
+use gprflow_estimate::smoother::SmootherParams;
+
+/// Final graph errors must agree within 0.1 %.
+const ERROR_REL_TOL: f64 = 1e-3;
+/// ATEs must agree within 1 mm.
+const ATE_TOL_M: f64 = 1e-3;
+
+fn fixture(name: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name)
+}
+
+#[test]
+fn batch_and_incremental_match_gtsam() {
+    let problem = Problem::read(&fixture("peer_n300.txt")).expect("problem fixture");
+    let text = std::fs::read_to_string(fixture("peer_n300.gtsam.json")).expect("gtsam fixture");
+    let gtsam: serde_json::Value = serde_json::from_str(&text).expect("json");
+    let g = |k: &str| {
+        gtsam[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{k} missing from the GTSAM fixture"))
+    };
+    assert_eq!(problem.loop_closures.len() as f64, g("loop_closures"));
+
+    let smoother = SmootherParams {
+        background: false,
+        ..SmootherParams::default()
+    };
+    let ours = run(&problem, LineMode::Off, Some(smoother)).expect("bench");
+
+    let rel = |a: f64, b: f64| (a - b).abs() / b.abs();
+    assert!(
+        rel(ours.batch.initial_error, g("initial_error")) < 1e-9,
+        "initial error: ours {} gtsam {}",
+        ours.batch.initial_error,
+        g("initial_error")
+    );
+    assert!(
+        rel(ours.batch.final_error, g("batch_error")) < ERROR_REL_TOL,
+        "batch error: ours {} gtsam {}",
+        ours.batch.final_error,
+        g("batch_error")
+    );
+    assert!(
+        (ours.batch.ate_rmse_m - g("batch_ate_rmse_m")).abs() < ATE_TOL_M,
+        "batch ATE: ours {} gtsam {}",
+        ours.batch.ate_rmse_m,
+        g("batch_ate_rmse_m")
+    );
+    let inc = ours.incremental.expect("incremental run");
+    assert!(
+        rel(inc.final_error, g("batch_error")) < ERROR_REL_TOL,
+        "incremental final error: ours {} gtsam {}",
+        inc.final_error,
+        g("batch_error")
+    );
+    assert!(
+        (inc.ate_rmse_m - g("batch_ate_rmse_m")).abs() < ATE_TOL_M,
+        "incremental ATE: ours {} gtsam {}; {inc:?}",
+        inc.ate_rmse_m,
+        g("batch_ate_rmse_m")
+    );
+    // The online estimate (before the final solve) stays close to the optimum.
+    assert!(
+        inc.online_ate_rmse_m < 2.0 * g("batch_ate_rmse_m"),
+        "online ATE {}",
+        inc.online_ate_rmse_m
+    );
+}

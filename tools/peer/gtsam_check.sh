@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Peer check of the estimation library against GTSAM 4.3.
+#
+# Installs gtsam==4.3.0 and numpy into .venv-gtsam, exports a small problem with the GTSAM
+# peer (../shared/peers/gtsam/gtsam_bench.py: N=300 states, a 100-state lap so that it has
+# loop closures), solves that same file with GTSAM (tools/peer/gtsam_solve.py) and writes the
+# fixture the Rust test compares against:
+#   stages/estimate/tests/fixtures/peer_n300.txt         the exported problem
+#   stages/estimate/tests/fixtures/peer_n300.gtsam.json  GTSAM's batch error and ATE on it
+# then runs that test (cargo nextest run -p gprflow-estimate --test peer_gtsam).
+#
+# usage: tools/peer/gtsam_check.sh         regenerate the fixture and run the test
+#        tools/peer/gtsam_check.sh --verify  (CI) re-solve the committed problem with GTSAM, check
+#                                            that GTSAM still gives the committed figures, run the test
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+venv=.venv-gtsam
+peer=../shared/peers/gtsam/gtsam_bench.py
+fixtures=stages/estimate/tests/fixtures
+if [ ! -x "$venv/bin/python" ]; then
+    python3 -m venv "$venv"
+fi
+"$venv/bin/python" -c 'import gtsam, numpy' 2>/dev/null || "$venv/bin/pip" install -q gtsam==4.3.0 numpy
+mkdir -p "$fixtures"
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+if [ "${1:-}" = "--verify" ]; then
+    "$venv/bin/python" tools/peer/gtsam_solve.py "$fixtures/peer_n300.txt" > "$tmp/fresh.json"
+    "$venv/bin/python" - "$tmp/fresh.json" "$fixtures/peer_n300.gtsam.json" <<'PY'
+import json, sys
+fresh, committed = (json.load(open(p)) for p in sys.argv[1:3])
+for k in ("initial_error", "batch_error", "batch_ate_rmse_m"):
+    if abs(fresh[k] - committed[k]) > 1e-9 * abs(committed[k]):
+        sys.exit(f"GTSAM now gives {k} = {fresh[k]}, the fixture says {committed[k]}")
+print("GTSAM reproduces the committed fixture:", {k: fresh[k] for k in ("batch_error", "batch_ate_rmse_m")})
+PY
+    cargo nextest run -p gprflow-estimate --test peer_gtsam
+    exit 0
+fi
+if [ ! -f "$peer" ]; then
+    echo "peer script $peer not found; run with --verify to re-solve the committed problem" >&2
+    exit 2
+fi
+(cd "$tmp" && "$OLDPWD/$venv/bin/python" "$OLDPWD/$peer" 300 --lap 100 --fact QR --no-isam \
+    --export problem.txt --out peer >/dev/null)
+cp "$tmp/problem.txt" "$fixtures/peer_n300.txt"
+"$venv/bin/python" tools/peer/gtsam_solve.py "$fixtures/peer_n300.txt" > "$fixtures/peer_n300.gtsam.json"
+cat "$fixtures/peer_n300.gtsam.json"
+cargo nextest run -p gprflow-estimate --test peer_gtsam
