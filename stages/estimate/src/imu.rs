@@ -53,6 +53,22 @@ impl Default for ImuParams {
     }
 }
 
+impl ImuParams {
+    /// The thesis rig's XSENS MTi-30 (seed 000; average-axis Allan densities of
+    /// `shared/data/imu/xsens_mti30_allan.yaml`), standard gravity, z up.
+    #[must_use]
+    pub fn xsens_mti30() -> Self {
+        Self {
+            gravity_mps2: Vector3::new(0.0, 0.0, -9.80665),
+            acc_noise_density: 8.27e-3,
+            gyro_noise_density: 2.28e-3,
+            acc_bias_random_walk: 1.33e-4,
+            gyro_bias_random_walk: 5.02e-5,
+            ..Self::default()
+        }
+    }
+}
+
 /// Measurements between two states integrated into one relative-motion measurement.
 #[derive(Debug, Clone)]
 pub struct ImuPreintegration {

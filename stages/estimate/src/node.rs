@@ -10,7 +10,7 @@ use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::imu::ImuParams;
 use crate::lie::Pose3;
-use crate::online::{OnlineEstimator, OnlineParams, RegistrationMeasurement, StateOutput};
+use crate::online::{FirstStatePrior, OnlineEstimator, OnlineParams, RegistrationMeasurement, StateOutput};
 use crate::smoother::SmootherParams;
 
 /// Parameters of the `estimate` stage.
@@ -21,15 +21,20 @@ pub struct EstimateParams {
     pub state_rate_hz: f64,
     /// Smoother window, states (default 30).
     pub lag_states: usize,
-    /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 0.01).
+    /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
-    /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 0.001).
+    /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 2.28e-3).
     pub gyro_noise_density: f64,
-    /// Accelerometer bias random walk (default 1e-3).
+    /// Accelerometer bias random walk, (m/s^3)/sqrt(Hz) (default 1.33e-4).
     pub acc_bias_random_walk: f64,
-    /// Gyroscope bias random walk (default 1e-4).
+    /// Gyroscope bias random walk, (rad/s^2)/sqrt(Hz) (default 5.02e-5).
     pub gyro_bias_random_walk: f64,
-    /// Gravity, m/s^2 (default 9.81).
+    /// Prior sigma of the accelerometer bias at the start, m/s^2 (default 0.05).
+    pub acc_bias_prior_sigma_mps2: f64,
+    /// Prior sigma of the gyroscope bias at the start, rad/s (default 5e-3). Loose values let
+    /// the yaw drift with the weakly observable gyro bias.
+    pub gyro_bias_prior_sigma_radps: f64,
+    /// Gravity, m/s^2 (default 9.80665).
     pub gravity_mps2: f64,
     /// Wheel along-track sigma per state, m (default 0.02).
     pub wheel_sigma_m: f64,
@@ -55,6 +60,8 @@ impl Default for EstimateParams {
             gyro_noise_density: o.imu.gyro_noise_density,
             acc_bias_random_walk: o.imu.acc_bias_random_walk,
             gyro_bias_random_walk: o.imu.gyro_bias_random_walk,
+            acc_bias_prior_sigma_mps2: o.first_state.acc_bias_sigma_mps2,
+            gyro_bias_prior_sigma_radps: o.first_state.gyro_bias_sigma_radps,
             gravity_mps2: -o.imu.gravity_mps2.z,
             wheel_sigma_m: o.wheel_sigma_m,
             registration_sigma_m: o.registration_sigma_m,
@@ -80,13 +87,18 @@ impl EstimateParams {
                 gyro_noise_density: self.gyro_noise_density,
                 acc_bias_random_walk: self.acc_bias_random_walk,
                 gyro_bias_random_walk: self.gyro_bias_random_walk,
-                ..ImuParams::default()
+                ..ImuParams::xsens_mti30()
             },
             wheel_sigma_m: self.wheel_sigma_m,
             registration_sigma_m: self.registration_sigma_m,
             registration_full_pose: self.registration_full_pose,
             line_min_baseline_m: self.line_min_baseline_m,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
+            first_state: FirstStatePrior {
+                acc_bias_sigma_mps2: self.acc_bias_prior_sigma_mps2,
+                gyro_bias_sigma_radps: self.gyro_bias_prior_sigma_radps,
+                ..FirstStatePrior::default()
+            },
             ..OnlineParams::default()
         }
     }
@@ -108,6 +120,8 @@ pub struct EstimateStage {
     trajectory_out: Output<Trajectory>,
     line_map_out: Output<LineMap>,
     last_stamp_ns: i64,
+    /// The first `initial_pose` message was seen (later ones are ignored).
+    origin_seen: bool,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -227,6 +241,8 @@ impl Stage for EstimateStage {
             optional,
         };
         InputPorts::Fixed(vec![
+            // When connected, the first state waits for its first message.
+            port("initial_pose", PoseStamped::TYPE_NAME, true),
             port("imu", Imu::TYPE_NAME, false),
             port("wheel", WheelOdometry::TYPE_NAME, true),
             port("registration", Registration::TYPE_NAME, true),
@@ -253,19 +269,36 @@ impl Stage for EstimateStage {
         if params.lag_states == 0 {
             return Err(param_error("lag_states", "must be at least 1".into()));
         }
+        let mut est = OnlineEstimator::new(params.online());
+        if ports.input("initial_pose").is_some() {
+            est.wait_for_origin();
+        }
         Ok(Self {
-            est: OnlineEstimator::new(params.online()),
+            est,
             state_out: ports.output("state")?,
             trajectory_out: ports.output("trajectory")?,
             line_map_out: ports.output("line_map")?,
             params,
             last_stamp_ns: 0,
+            origin_seen: false,
         })
     }
 
     fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> Result<(), StageError> {
         self.last_stamp_ns = self.last_stamp_ns.max(input.stamp_ns());
         match input.name() {
+            "initial_pose" => {
+                if !self.origin_seen {
+                    let m: PoseStamped = input.decode()?;
+                    self.origin_seen = true;
+                    if !self.est.set_origin(pose_from_msg(&m.pose)) {
+                        tracing::warn!(
+                            seq = input.seq(),
+                            "initial_pose arrived after the first state; the estimate keeps its own origin"
+                        );
+                    }
+                }
+            }
             "imu" => {
                 let m: Imu = input.decode()?;
                 let a = &m.linear_acceleration;
@@ -323,6 +356,12 @@ impl Stage for EstimateStage {
 
     fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
         self.est.finish().map_err(StageError::failed)?;
+        if self.est.dropped_before_origin() > 0 {
+            tracing::info!(
+                imu_samples = self.est.dropped_before_origin(),
+                "estimate: IMU samples before the first initial_pose, not used"
+            );
+        }
         if self.est.late_updates() > 0 {
             tracing::warn!(
                 late = self.est.late_updates(),
