@@ -97,12 +97,16 @@ pub fn levenberg_marquardt_keep_hessian(
     let start = Instant::now();
     faer::set_global_parallelism(faer::Par::Seq);
     let st = match structure.take() {
-        Some(s) if s.fits(graph, factors, ordering) => s,
-        _ => HessianStructure::new(graph, factors, ordering)?,
+        Some(mut s) if s.fits(graph, factors, ordering) => {
+            s.rebind(values, ordering);
+            s
+        }
+        _ => HessianStructure::new(graph, factors, values, ordering)?,
     };
     let mut lambda = params.lambda_initial;
+    let mut factorization: Option<Factorization> = None;
     let t = Instant::now();
-    let mut ne = linearize(graph, factors, values, ordering, &st)?;
+    let mut ne = linearize(graph, factors, values, &st)?;
     let first_linearize_s = t.elapsed().as_secs_f64();
     let initial_error = ne.error;
     let mut report = LmReport {
@@ -126,7 +130,17 @@ pub fn levenberg_marquardt_keep_hessian(
         loop {
             report.linear_solves += 1;
             let t = Instant::now();
-            let step = match Factorization::new(&st, &ne.hessian, lambda) {
+            let factored = match &mut factorization {
+                Some(f) => f.refactor(&st, &ne.hessian, lambda),
+                None => Factorization::new(&st, &ne.hessian, lambda).map(|f| {
+                    factorization = Some(f);
+                }),
+            };
+            let step = match factored.and_then(|()| {
+                factorization
+                    .as_ref()
+                    .ok_or(Error::LinearSolve("no factorisation".into()))
+            }) {
                 Ok(f) => {
                     let mut dx = ne.gradient.as_slice().to_vec();
                     f.solve_in_place(&mut dx);
@@ -144,7 +158,7 @@ pub fn levenberg_marquardt_keep_hessian(
                     .map(|id| values.get(*id).copied())
                     .collect::<Result<_>>()?;
                 let t = Instant::now();
-                retract(values, ordering, &dx)?;
+                retract(values, st.ordering(), &dx)?;
                 let new_error = factors
                     .iter()
                     .map(|&f| graph.factors()[f].error(values))
@@ -166,7 +180,7 @@ pub fn levenberg_marquardt_keep_hessian(
                         break 'outer;
                     }
                     let t = Instant::now();
-                    ne = linearize(graph, factors, values, ordering, &st)?;
+                    ne = linearize(graph, factors, values, &st)?;
                     report.linearize_s += t.elapsed().as_secs_f64();
                     break;
                 }

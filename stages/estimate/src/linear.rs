@@ -9,10 +9,13 @@ use std::collections::BTreeSet;
 
 use std::sync::Arc;
 
-use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::sparse::linalg::SupernodalThreshold;
-use faer::sparse::linalg::cholesky::{CholeskySymbolicParams, LltRef, SymbolicCholesky, factorize_symbolic_cholesky};
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use faer::sparse::linalg::amd;
+use faer::sparse::linalg::cholesky::{
+    CholeskySymbolicParams, LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
 use faer::{Conj, Par, Side};
 use nalgebra::{DMatrix, DVector};
 
@@ -90,35 +93,44 @@ impl Ordering {
     }
 }
 
-/// The compressed-column structure of `J^T J` for one ordering and factor set, and the
-/// symbolic Cholesky of that structure.
+/// The compressed-column structure of `J^T J` for one set of free variables and factors, its
+/// elimination ordering and the symbolic Cholesky of that structure.
+///
+/// The ordering is chosen here: approximate minimum degree (faer's AMD) on the graph of the
+/// *variables* (one node per pose, velocity, bias or line; edges where a factor joins two),
+/// not on the scalar matrix, which is 6-15 times larger. The system is then assembled directly
+/// in elimination order, so the numeric factorisation needs no permutation of its input.
 #[derive(Debug, Clone)]
 pub struct HessianStructure {
+    /// The free variables in elimination (system) order.
+    ordering: Ordering,
+    /// Per position in the caller's order: the position in elimination order.
+    elimination_position: Vec<usize>,
     dim: usize,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     /// Index of each diagonal entry in the value array.
     diag: Vec<usize>,
-    /// Per column variable position: `(row variable position, offset of its rows inside each
-    /// of the column variable's columns)`, sorted by row variable.
+    /// Per column variable (elimination position): `(row variable position, offset of its rows
+    /// inside each of the column variable's columns)`, sorted by row variable.
     segments: Vec<Vec<(usize, usize)>>,
     symbolic: Arc<SymbolicCholesky<usize>>,
-    /// The canonical block pattern the structure was built from (reuse key).
+    /// The block pattern in the caller's order (reuse key), and the variables' dimensions.
     pattern: Vec<(usize, usize)>,
     dims: Vec<usize>,
 }
 
+/// The lower block pattern `(row, column)` of the factors over the positions of `ordering`, and
+/// each position's dimension.
 fn block_pattern(graph: &FactorGraph, factors: &[usize], ordering: &Ordering) -> (Vec<(usize, usize)>, Vec<usize>) {
     let mut blocks = BTreeSet::new();
     for (p, _) in ordering.free.iter().enumerate() {
         blocks.insert((p, p));
     }
+    let mut keys = Vec::new();
     for &fi in factors {
-        let keys: Vec<usize> = graph.factors()[fi]
-            .keys()
-            .iter()
-            .filter_map(|k| ordering.position(*k))
-            .collect();
+        keys.clear();
+        keys.extend(graph.factors()[fi].keys().iter().filter_map(|k| ordering.position(*k)));
         for &a in &keys {
             for &b in &keys {
                 if a >= b {
@@ -135,27 +147,84 @@ fn block_pattern(graph: &FactorGraph, factors: &[usize], ordering: &Ordering) ->
     (blocks.into_iter().collect(), dims)
 }
 
+/// Approximate minimum degree order of the variables of a lower block pattern: per position,
+/// its place in elimination order.
+fn minimum_degree_positions(pattern: &[(usize, usize)], nvar: usize) -> Result<Vec<usize>> {
+    let mut rows_of: Vec<Vec<usize>> = vec![Vec::new(); nvar];
+    for &(a, b) in pattern {
+        rows_of[b].push(a);
+    }
+    let mut col_ptr = Vec::with_capacity(nvar + 1);
+    let mut row_idx = Vec::with_capacity(pattern.len());
+    col_ptr.push(0);
+    for rows in &mut rows_of {
+        rows.sort_unstable();
+        row_idx.extend_from_slice(rows);
+        col_ptr.push(row_idx.len());
+    }
+    let nnz = row_idx.len();
+    let sym = SymbolicSparseColMatRef::new_checked(nvar, nvar, &col_ptr, None, &row_idx);
+    let mut perm = vec![0usize; nvar];
+    let mut perm_inv = vec![0usize; nvar];
+    let mut mem = MemBuffer::new(amd::order_scratch::<usize>(nvar, nnz));
+    amd::order(
+        &mut perm,
+        &mut perm_inv,
+        sym,
+        amd::Control::default(),
+        MemStack::new(&mut mem),
+    )
+    .map_err(|e| Error::LinearSolve(format!("ordering: {e:?}")))?;
+    // `perm[k]` is the variable eliminated k-th, `perm_inv` its inverse.
+    Ok(perm_inv)
+}
+
+/// The compressed columns of the transpose of a `dim x dim` pattern (row indices sorted).
+fn transpose_pattern(dim: usize, col_ptr: &[usize], row_idx: &[usize]) -> (Vec<usize>, Vec<usize>) {
+    let mut count = vec![0usize; dim + 1];
+    for &r in row_idx {
+        count[r + 1] += 1;
+    }
+    for k in 0..dim {
+        count[k + 1] += count[k];
+    }
+    let mut next = count.clone();
+    let mut out = vec![0usize; row_idx.len()];
+    for c in 0..dim {
+        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
+            out[next[r]] = c;
+            next[r] += 1;
+        }
+    }
+    (count, out)
+}
+
 impl HessianStructure {
-    /// The structure of the factors `factors` of `graph` under `ordering`.
+    /// The structure of the factors `factors` of `graph` over the free variables of `free`
+    /// (in any order: the structure picks the elimination order).
     ///
     /// # Errors
     /// [`Error::LinearSolve`] when faer rejects the structure.
-    pub fn new(graph: &FactorGraph, factors: &[usize], ordering: &Ordering) -> Result<Self> {
-        let (pattern, dims) = block_pattern(graph, factors, ordering);
-        Self::from_pattern(pattern, dims)
-    }
-
-    fn from_pattern(pattern: Vec<(usize, usize)>, dims: Vec<usize>) -> Result<Self> {
-        let nvar = dims.len();
+    pub fn new(graph: &FactorGraph, factors: &[usize], values: &Values, free: &Ordering) -> Result<Self> {
+        let (pattern, dims) = block_pattern(graph, factors, free);
+        let elimination_position = minimum_degree_positions(&pattern, dims.len())?;
+        let ordering = Self::eliminate(values, free, &elimination_position);
+        let (elim_pattern, _) = block_pattern(graph, factors, &ordering);
+        let elim_dims: Vec<usize> = ordering
+            .free
+            .iter()
+            .filter_map(|v| ordering.slot(*v).map(|s| s.1))
+            .collect();
+        let nvar = elim_dims.len();
         let mut offsets = Vec::with_capacity(nvar);
         let mut dim = 0;
-        for d in &dims {
+        for d in &elim_dims {
             offsets.push(dim);
             dim += d;
         }
         // Rows of each column variable: the variables at or below it that share a factor.
         let mut rows_of: Vec<Vec<usize>> = vec![Vec::new(); nvar];
-        for &(a, b) in &pattern {
+        for &(a, b) in &elim_pattern {
             rows_of[b].push(a);
         }
         let mut col_ptr = Vec::with_capacity(dim + 1);
@@ -172,50 +241,88 @@ impl HessianStructure {
                     own = seg;
                 }
                 segments[b].push((a, seg));
-                seg += dims[a];
+                seg += elim_dims[a];
             }
-            for c in 0..dims[b] {
+            for c in 0..elim_dims[b] {
                 let start = row_idx.len();
                 for &a in &rows_of[b] {
-                    row_idx.extend(offsets[a]..offsets[a] + dims[a]);
+                    row_idx.extend(offsets[a]..offsets[a] + elim_dims[a]);
                 }
                 diag.push(start + own + c);
                 col_ptr.push(row_idx.len());
             }
         }
-        let sym = SymbolicSparseColMat::<usize>::new_checked(dim, dim, col_ptr.clone(), None, row_idx.clone());
+        // faer's symbolic analysis without a permutation reads the upper triangle (the numeric
+        // factorisation reads the lower one, as stored): hand it the transposed pattern.
+        let (upper_col_ptr, upper_row_idx) = transpose_pattern(dim, &col_ptr, &row_idx);
+        let sym = SymbolicSparseColMat::<usize>::new_checked(dim, dim, upper_col_ptr, None, upper_row_idx);
         // Supernodal: the Hessian is made of dense 3x3 to 15x15 blocks, which dense kernels
         // factor much faster than the column-by-column simplicial variant faer picks otherwise.
         let params = CholeskySymbolicParams {
             supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
             ..Default::default()
         };
-        let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Lower, Default::default(), params)
+        let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Upper, SymmetricOrdering::Identity, params)
             .map_err(|e| Error::LinearSolve(format!("symbolic: {e:?}")))?;
-        let symbolic = Arc::new(symbolic);
         Ok(Self {
+            ordering,
+            elimination_position,
             dim,
             col_ptr,
             row_idx,
             diag,
             segments,
-            symbolic,
+            symbolic: { Arc::new(symbolic) },
             pattern,
             dims,
         })
     }
 
-    /// True when `self` can serve the factors `factors` under `ordering` as it is.
+    fn eliminate(values: &Values, free: &Ordering, elimination_position: &[usize]) -> Ordering {
+        let mut order = vec![VarId(0); free.free.len()];
+        for (p, id) in free.free.iter().enumerate() {
+            order[elimination_position[p]] = *id;
+        }
+        Ordering::free(values, &order)
+    }
+
+    /// True when `self` can serve the factors `factors` over the free variables of `free`: the
+    /// same block pattern in the same positions (possibly other variables, as when a window
+    /// slides). Call [`HessianStructure::rebind`] before using it for them.
     #[must_use]
-    pub fn fits(&self, graph: &FactorGraph, factors: &[usize], ordering: &Ordering) -> bool {
-        let (pattern, dims) = block_pattern(graph, factors, ordering);
+    pub fn fits(&self, graph: &FactorGraph, factors: &[usize], free: &Ordering) -> bool {
+        if free.free.len() != self.dims.len() {
+            return false;
+        }
+        let (pattern, dims) = block_pattern(graph, factors, free);
         pattern == self.pattern && dims == self.dims
+    }
+
+    /// Points a structure that [`HessianStructure::fits`] at the variables of `free`.
+    pub fn rebind(&mut self, values: &Values, free: &Ordering) {
+        if free.free != self.ordering.free {
+            self.ordering = Self::eliminate(values, free, &self.elimination_position);
+            // Variables are identified by their position in `free`, so an equal pattern in the
+            // caller's order is an equal pattern in elimination order.
+        }
+    }
+
+    /// The free variables in the order of the linear system.
+    #[must_use]
+    pub fn ordering(&self) -> &Ordering {
+        &self.ordering
     }
 
     /// Number of stored entries.
     #[must_use]
     pub fn nnz(&self) -> usize {
         self.row_idx.len()
+    }
+
+    /// Stored entries of the Cholesky factor.
+    #[must_use]
+    pub fn factor_nnz(&self) -> usize {
+        self.symbolic.len_val()
     }
 }
 
@@ -231,7 +338,8 @@ pub struct NormalEquations {
 }
 
 /// Linearises the factors `factors` of `graph` at `values`: whitened, robust-reweighted
-/// Jacobians accumulated into `J^T J` and `J^T r` over the free variables of `ordering`.
+/// Jacobians accumulated into `J^T J` and `J^T r` over the free variables of `structure`'s
+/// ordering (variables it does not hold are constants).
 ///
 /// # Errors
 /// A factor that cannot be evaluated.
@@ -239,60 +347,75 @@ pub fn linearize(
     graph: &FactorGraph,
     factors: &[usize],
     values: &Values,
-    ordering: &Ordering,
     structure: &HessianStructure,
 ) -> Result<NormalEquations> {
+    let ordering = &structure.ordering;
     let mut hessian = vec![0.0; structure.nnz()];
     let mut gradient = DVector::zeros(structure.dim);
     let mut error = 0.0;
+    // Scratch reused across factors: per-key Jacobians, the free keys' Jacobians side by
+    // side, J^T J and J^T r.
     let mut jac: Vec<DMatrix<f64>> = Vec::new();
+    let mut jall = DMatrix::zeros(0, 0);
+    let mut jtj = DMatrix::zeros(0, 0);
+    let mut g = DVector::zeros(0);
+    let mut jt = Vec::new();
+    // Per free key: (key index, position, column in `jall`, offset, dim).
+    let mut free: Vec<(usize, usize, usize, usize, usize)> = Vec::new();
     for &fi in factors {
         let f: &dyn Factor = graph.factors()[fi].as_ref();
         let noise = f.noise();
         let m = noise.dim();
-        jac.clear();
-        for k in f.keys() {
-            jac.push(DMatrix::zeros(m, values.get(*k)?.dim()));
+        let keys = f.keys();
+        if jac.len() < keys.len() {
+            jac.resize_with(keys.len(), || DMatrix::zeros(0, 0));
         }
-        let r = f.evaluate(values, Some(&mut jac))?;
+        for (j, k) in jac.iter_mut().zip(keys) {
+            let d = values.get(*k)?.dim();
+            if j.shape() != (m, d) {
+                *j = DMatrix::zeros(m, d);
+            } else {
+                j.fill(0.0);
+            }
+        }
+        let r = f.evaluate(values, Some(&mut jac[..keys.len()]))?;
         let mut rw = noise.whiten(&r);
         let norm = rw.norm();
         error += noise.kernel().map_or(0.5 * norm * norm, |k| k.loss(norm));
         let s = noise.robust_scale(&rw);
-        // The free keys' Jacobians side by side: (key index, position, column in `jall`).
-        let mut free: Vec<(usize, usize, usize)> = Vec::with_capacity(jac.len());
+        free.clear();
         let mut cols = 0;
-        for (k, key) in f.keys().iter().enumerate() {
-            if let Some(p) = ordering.position(*key) {
-                free.push((k, p, cols));
-                cols += jac[k].ncols();
+        for (k, key) in keys.iter().enumerate() {
+            if let (Some(p), Some((off, dim))) = (ordering.position(*key), ordering.slot(*key)) {
+                free.push((k, p, cols, off, dim));
+                cols += dim;
             }
         }
         if free.is_empty() {
             continue;
         }
-        let mut jall = DMatrix::zeros(m, cols);
-        for &(k, _, c0) in &free {
-            jall.columns_mut(c0, jac[k].ncols()).copy_from(&jac[k]);
+        if jall.shape() != (m, cols) {
+            jall = DMatrix::zeros(m, cols);
+            jtj = DMatrix::zeros(cols, cols);
+            g = DVector::zeros(cols);
+        }
+        for &(k, _, c0, _, d) in &free {
+            jall.columns_mut(c0, d).copy_from(&jac[k]);
         }
         noise.whiten_jacobian(&mut jall);
         if s != 1.0 {
             jall *= s;
             rw *= s;
         }
-        let jtj = jall.tr_mul(&jall);
-        let g = jall.tr_mul(&rw);
-        for &(ka, pa, ca) in &free {
-            let (off_a, da) = ordering.slot(ordering.free[pa]).ok_or(Error::UnknownVariable(pa))?;
-            debug_assert_eq!(da, jac[ka].ncols());
+        gram(&jall, &rw, &mut jt, &mut jtj, &mut g);
+        for &(_, pa, ca, off_a, da) in &free {
             for (gi, gv) in gradient.rows_mut(off_a, da).iter_mut().zip(g.rows(ca, da).iter()) {
                 *gi += gv;
             }
-            for &(_, pb, cb) in &free {
+            for &(_, pb, cb, off_b, db) in &free {
                 if pa < pb {
                     continue;
                 }
-                let (off_b, db) = ordering.slot(ordering.free[pb]).ok_or(Error::UnknownVariable(pb))?;
                 let seg = structure.segments[pb]
                     .iter()
                     .find(|(a, _)| *a == pa)
@@ -300,8 +423,8 @@ pub fn linearize(
                     .ok_or(Error::LinearSolve("factor outside the Hessian structure".into()))?;
                 for c in 0..db {
                     let base = structure.col_ptr[off_b + c] + seg;
-                    let src = jtj.view((ca, cb + c), (da, 1));
-                    for (h, v) in hessian[base..base + da].iter_mut().zip(src.iter()) {
+                    let src = &jtj.as_slice()[(cb + c) * cols + ca..(cb + c) * cols + ca + da];
+                    for (h, v) in hessian[base..base + da].iter_mut().zip(src) {
                         *h += v;
                     }
                 }
@@ -315,12 +438,61 @@ pub fn linearize(
     })
 }
 
-/// A numeric Cholesky factorisation of `H + lambda I`.
-#[derive(Debug)]
+/// `J^T J` (full, symmetric) and `J^T r` of an `m x n` Jacobian, as a sum of rank-one updates
+/// by the rows of `J` (contiguous after transposing into `jt`): independent multiply-adds that
+/// vectorise, where dot products of columns form one long dependency chain per entry.
+fn gram(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mut DMatrix<f64>, g: &mut DVector<f64>) {
+    let (m, n) = j.shape();
+    let js = j.as_slice();
+    jt.clear();
+    jt.resize(m * n, 0.0);
+    for c in 0..n {
+        for k in 0..m {
+            jt[k * n + c] = js[c * m + k];
+        }
+    }
+    let h = jtj.as_mut_slice();
+    h.fill(0.0);
+    g.fill(0.0);
+    for k in 0..m {
+        let row = &jt[k * n..(k + 1) * n];
+        for (gc, v) in g.iter_mut().zip(row) {
+            *gc += r[k] * v;
+        }
+        for c in 0..n {
+            let a = row[c];
+            if a == 0.0 {
+                continue;
+            }
+            for (d, v) in h[c * n + c..(c + 1) * n].iter_mut().zip(&row[c..]) {
+                *d += a * v;
+            }
+        }
+    }
+    // Lower triangle done; mirror it.
+    for c in 0..n {
+        for r in c + 1..n {
+            h[r * n + c] = h[c * n + r];
+        }
+    }
+}
+
+/// A numeric Cholesky factorisation of `H + lambda I`, with the buffers to redo it.
 pub struct Factorization {
     symbolic: Arc<SymbolicCholesky<usize>>,
     values: Vec<f64>,
+    damped: Vec<f64>,
+    scratch: MemBuffer,
     dim: usize,
+}
+
+impl std::fmt::Debug for Factorization {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Factorization")
+            .field("dim", &self.dim)
+            .field("factor_nnz", &self.values.len())
+            .finish_non_exhaustive()
+    }
 }
 
 impl Factorization {
@@ -329,39 +501,59 @@ impl Factorization {
     /// # Errors
     /// [`Error::LinearSolve`] when the matrix is not positive definite.
     pub fn new(structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<Self> {
-        let mut vals = hessian.to_vec();
+        let symbolic = structure.symbolic.clone();
+        let scratch = MemBuffer::new(StackReq::any_of(&[
+            symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+            symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
+        ]));
+        let mut f = Self {
+            values: vec![0.0; symbolic.len_val()],
+            damped: Vec::with_capacity(hessian.len()),
+            symbolic,
+            scratch,
+            dim: structure.dim,
+        };
+        f.refactor(structure, hessian, lambda)?;
+        Ok(f)
+    }
+
+    /// Factorises `H + lambda I` again, reusing the buffers when `structure` is the one this
+    /// factorisation was made with.
+    ///
+    /// # Errors
+    /// [`Error::LinearSolve`] when the matrix is not positive definite.
+    pub fn refactor(&mut self, structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<()> {
+        if !Arc::ptr_eq(&self.symbolic, &structure.symbolic) {
+            *self = Self::new(structure, hessian, lambda)?;
+            return Ok(());
+        }
+        self.damped.clear();
+        self.damped.extend_from_slice(hessian);
         if lambda != 0.0 {
             for &d in &structure.diag {
-                vals[d] += lambda;
+                self.damped[d] += lambda;
             }
         }
-        let sym = faer::sparse::SymbolicSparseColMatRef::new_checked(
+        let sym = SymbolicSparseColMatRef::new_checked(
             structure.dim,
             structure.dim,
             &structure.col_ptr,
             None,
             &structure.row_idx,
         );
-        let mat = SparseColMatRef::new(sym, &vals);
-        let symbolic = structure.symbolic.clone();
-        let mut values = vec![0.0; symbolic.len_val()];
-        let mut mem = MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
-        symbolic
+        let mat = SparseColMatRef::new(sym, &self.damped);
+        self.symbolic
             .factorize_numeric_llt::<f64>(
-                &mut values,
+                &mut self.values,
                 mat,
                 Side::Lower,
                 Default::default(),
                 Par::Seq,
-                MemStack::new(&mut mem),
+                MemStack::new(&mut self.scratch),
                 Default::default(),
             )
             .map_err(|e| Error::LinearSolve(format!("{e:?}")))?;
-        Ok(Self {
-            symbolic,
-            values,
-            dim: structure.dim,
-        })
+        Ok(())
     }
 
     /// Solves `(H + lambda I) x = rhs` in place; `rhs` may hold several columns (column-major).
@@ -454,8 +646,9 @@ mod tests {
         graph.add(BetweenPose::new(ids[0], ids[3], Pose3::identity(), n6).expect("f"));
         let all: Vec<usize> = (0..graph.len()).collect();
         let ord = Ordering::all(&values);
-        let st = HessianStructure::new(&graph, &all, &ord).expect("structure");
-        let ne = linearize(&graph, &all, &values, &ord, &st).expect("linearize");
+        let st = HessianStructure::new(&graph, &all, &values, &ord).expect("structure");
+        let ne = linearize(&graph, &all, &values, &st).expect("linearize");
+        let sys = st.ordering();
         // Dense H from the lower-triangle storage.
         let n = ord.dim();
         let mut h = DMatrix::zeros(n, n);
@@ -479,8 +672,9 @@ mod tests {
         let sparse = DVector::from_vec(x);
         assert!((dense - sparse).norm() < 1e-9);
         assert!(st.fits(&graph, &all, &ord));
-        let cov = marginal_covariance(&fact, &ord, ids[3]).expect("cov");
+        let cov = marginal_covariance(&fact, sys, ids[3]).expect("cov");
         let dense_inv = (h + DMatrix::identity(n, n) * lambda).try_inverse().expect("inv");
-        assert!((cov - dense_inv.view((18, 18), (6, 6))).norm() < 1e-9);
+        let (off, _) = sys.slot(ids[3]).expect("free");
+        assert!((cov - dense_inv.view((off, off), (6, 6))).norm() < 1e-9);
     }
 }

@@ -127,7 +127,9 @@ impl NoiseModel {
         if self.diagonal {
             r.component_mul(&self.sqrt_info.diagonal())
         } else {
-            &self.sqrt_info * r
+            let mut out = r.clone();
+            upper_mul_in_place(self.sqrt_info.as_slice(), out.as_mut_slice());
+            out
         }
     }
 
@@ -138,7 +140,11 @@ impl NoiseModel {
                 j.row_mut(row).scale_mut(*s);
             }
         } else {
-            *j = &self.sqrt_info * &*j;
+            let m = self.sqrt_info.nrows();
+            let r = self.sqrt_info.as_slice();
+            for col in j.as_mut_slice().chunks_exact_mut(m) {
+                upper_mul_in_place(r, col);
+            }
         }
     }
 
@@ -159,6 +165,29 @@ impl NoiseModel {
     }
 }
 
+/// `x <- R x` for an upper-triangular `m x m` matrix `R` stored column-major, `m = x.len()`:
+/// the columns of `R` scaled and added (contiguous, so the adds vectorise).
+fn upper_mul_in_place(r: &[f64], x: &mut [f64]) {
+    let m = x.len();
+    let mut small = [0.0f64; 32];
+    let mut large = Vec::new();
+    let y: &mut [f64] = if m <= small.len() {
+        &mut small[..m]
+    } else {
+        large.resize(m, 0.0);
+        &mut large
+    };
+    for (k, xk) in x.iter().enumerate() {
+        if *xk == 0.0 {
+            continue;
+        }
+        for (yi, rik) in y[..=k].iter_mut().zip(&r[k * m..=k * m + k]) {
+            *yi += rik * xk;
+        }
+    }
+    x.copy_from_slice(y);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -170,6 +199,18 @@ mod tests {
         let r = DVector::from_vec(vec![1.0, -2.0]);
         let expected = 0.5 * (r.transpose() * cov.clone().try_inverse().expect("inv") * &r)[0];
         assert!((n.error(&r) - expected).abs() < 1e-12);
+    }
+
+    #[test]
+    fn in_place_whitening_matches_the_dense_product() {
+        let cov = DMatrix::from_row_slice(3, 3, &[4.0, 1.0, 0.5, 1.0, 2.0, 0.3, 0.5, 0.3, 1.5]);
+        let n = NoiseModel::from_covariance(&cov).expect("spd");
+        let j = DMatrix::from_fn(3, 5, |r, c| (r * 5 + c) as f64 - 6.0);
+        let mut w = j.clone();
+        n.whiten_jacobian(&mut w);
+        assert!((w - &n.sqrt_info * &j).norm() < 1e-12);
+        let r = DVector::from_vec(vec![0.3, -1.0, 2.0]);
+        assert!((n.whiten(&r) - &n.sqrt_info * &r).norm() < 1e-12);
     }
 
     #[test]

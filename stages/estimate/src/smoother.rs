@@ -251,7 +251,7 @@ impl FixedLagSmoother {
             && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
             && let Ok(f) = Factorization::new(st, &ne.hessian, 0.0)
         {
-            self.newest_cov = Some(marginal_covariance(&f, &ordering, *newest)?);
+            self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
         }
         Ok(report)
     }
