@@ -4,7 +4,7 @@
 
 use std::io::Write;
 
-use gprflow_estimate::bench::run;
+use gprflow_estimate::bench::{BenchOptions, run};
 use gprflow_estimate::problem::{LineMode, Problem};
 use gprflow_estimate::smoother::SmootherParams;
 
@@ -12,7 +12,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let path = args
         .next()
-        .ok_or("usage: bench_estimate problem.txt [lag_states, 0: batch only] [off|known|estimated]")?;
+        .ok_or("usage: bench_estimate problem.txt [lag_states, 0: batch only] [off|known|estimated] [pace_hz]")?;
     let lag_states = args
         .next()
         .map(|s| s.parse())
@@ -23,13 +23,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some("estimated") => LineMode::Estimated,
         _ => LineMode::Off,
     };
+    let pace_hz = args.next().map(|s| s.parse()).transpose()?;
     let problem = Problem::read(std::path::Path::new(&path))?;
     // A lag of 0 runs the batch solve only.
     let smoother = (lag_states > 0).then(|| SmootherParams {
         lag_states,
         ..SmootherParams::default()
     });
-    let report = run(&problem, lines, smoother)?;
+    let report = run(
+        &problem,
+        &BenchOptions {
+            lines,
+            smoother,
+            pace_hz,
+        },
+    )?;
     writeln!(std::io::stdout().lock(), "{}", serde_json::to_string_pretty(&report)?)?;
     Ok(())
 }

@@ -96,11 +96,25 @@ pub fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[rank.clamp(1, sorted.len()) - 1]
 }
 
-/// Solves `problem` in batch and (unless `smoother` is `None`) incrementally.
+/// What to run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BenchOptions {
+    /// Line factors.
+    pub lines: LineMode,
+    /// The incremental run's smoother (`None`: batch only).
+    pub smoother: Option<SmootherParams>,
+    /// Feed the incremental run one state every `1 / pace_hz` seconds, as a live pipeline
+    /// would (`None`: as fast as the updates go, which starves the background re-solves of
+    /// the states they would otherwise span).
+    pub pace_hz: Option<f64>,
+}
+
+/// Solves `problem` in batch and (unless `options.smoother` is `None`) incrementally.
 ///
 /// # Errors
 /// A factor that cannot be evaluated or a solver failure.
-pub fn run(problem: &Problem, lines: LineMode, smoother: Option<SmootherParams>) -> Result<BenchReport> {
+pub fn run(problem: &Problem, options: &BenchOptions) -> Result<BenchReport> {
+    let lines = options.lines;
     let mut batch = ProblemGraph::batch(problem, lines)?;
     let dr = batch.ate(problem)?;
     let all: Vec<usize> = (0..batch.graph.len()).collect();
@@ -126,8 +140,8 @@ pub fn run(problem: &Problem, lines: LineMode, smoother: Option<SmootherParams>)
         ate_rmse_m: ate.0,
         ate_max_m: ate.1,
     };
-    let incremental = match smoother {
-        Some(p) => Some(run_incremental(problem, lines, p, &batch)?),
+    let incremental = match options.smoother {
+        Some(p) => Some(run_incremental(problem, lines, p, options.pace_hz, &batch)?),
         None => None,
     };
     Ok(BenchReport {
@@ -145,13 +159,19 @@ fn run_incremental(
     problem: &Problem,
     lines: LineMode,
     params: SmootherParams,
+    pace_hz: Option<f64>,
     batch: &ProblemGraph,
 ) -> Result<IncrementalFigures> {
+    let start = Instant::now();
     let mut pg = ProblemGraph::new(problem, lines)?;
     let mut smoother = FixedLagSmoother::new(params);
     let mut times_ms = Vec::with_capacity(problem.params.states);
     let mut full_ms = Vec::new();
     for i in 0..problem.params.states {
+        if let Some(hz) = pace_hz.filter(|hz| hz.is_finite() && *hz > 0.0) {
+            let due = std::time::Duration::from_secs_f64(i as f64 / hz);
+            std::thread::sleep(due.saturating_sub(start.elapsed()));
+        }
         let t0 = Instant::now();
         let (init, bias_hat) = if i == 0 {
             let gt = problem.ground_truth[0];

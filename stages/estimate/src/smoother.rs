@@ -50,7 +50,9 @@ pub struct SmootherParams {
     /// Full re-solves on a background thread (`false`: in the update that needs one; for
     /// deterministic tests and offline runs).
     pub background: bool,
-    /// Settings of the full re-solves.
+    /// Settings of the background full re-solves. They start from the current estimate and
+    /// need not converge: the next loop closure starts another one from where this one ended
+    /// (default: at most 3 iterations). [`FixedLagSmoother::finish`] solves to convergence.
     pub full_solve: LmParams,
     /// Compute the newest state's covariance after each update.
     pub newest_covariance: bool,
@@ -63,7 +65,7 @@ impl Default for SmootherParams {
             iterations_per_update: 3,
             background: true,
             full_solve: LmParams {
-                max_iterations: 20,
+                max_iterations: 3,
                 ..LmParams::default()
             },
             newest_covariance: true,
@@ -241,7 +243,7 @@ impl FixedLagSmoother {
         let ordering = Ordering::free(values, &free);
         let lm = LmParams {
             max_iterations: self.params.iterations_per_update,
-            ..self.params.full_solve
+            ..LmParams::default()
         };
         let (report, ne) =
             levenberg_marquardt_keep_hessian(graph, &factors, values, &ordering, &lm, &mut self.structure)?;
@@ -354,6 +356,6 @@ impl FixedLagSmoother {
         self.poll(values, true)?;
         let all: Vec<usize> = (0..graph.len()).collect();
         let ordering = Ordering::all(values);
-        levenberg_marquardt(graph, &all, values, &ordering, &self.params.full_solve, &mut None)
+        levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
     }
 }

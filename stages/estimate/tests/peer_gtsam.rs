@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use gprflow_estimate::bench::run;
+use gprflow_estimate::bench::{BenchOptions, run};
 use gprflow_estimate::problem::{LineMode, Problem};
 use gprflow_estimate::smoother::SmootherParams;
 
@@ -36,7 +36,15 @@ fn batch_and_incremental_match_gtsam() {
         background: false,
         ..SmootherParams::default()
     };
-    let ours = run(&problem, LineMode::Off, Some(smoother)).expect("bench");
+    let ours = run(
+        &problem,
+        &BenchOptions {
+            lines: LineMode::Off,
+            smoother: Some(smoother),
+            pace_hz: None,
+        },
+    )
+    .expect("bench");
 
     let rel = |a: f64, b: f64| (a - b).abs() / b.abs();
     assert!(

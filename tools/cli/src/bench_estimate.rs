@@ -4,7 +4,7 @@ use std::io::Write;
 use std::path::Path;
 use std::process::ExitCode;
 
-use gprflow_estimate::bench::{BenchReport, run};
+use gprflow_estimate::bench::{BenchOptions, BenchReport, run};
 use gprflow_estimate::problem::{LineMode, Problem};
 use gprflow_estimate::smoother::SmootherParams;
 
@@ -17,6 +17,8 @@ pub struct BenchEstimateArgs {
     pub batch_only: bool,
     /// Window of the incremental smoother, states.
     pub lag_states: usize,
+    /// Feed one state every `1 / pace_hz` seconds, as a live pipeline would.
+    pub pace_hz: Option<f64>,
     /// JSON output.
     pub json: bool,
 }
@@ -31,7 +33,14 @@ pub fn bench_estimate(problem: &Path, args: &BenchEstimateArgs) -> anyhow::Resul
         lag_states: args.lag_states,
         ..SmootherParams::default()
     });
-    let report = run(&p, args.lines, smoother)?;
+    let report = run(
+        &p,
+        &BenchOptions {
+            lines: args.lines,
+            smoother,
+            pace_hz: args.pace_hz,
+        },
+    )?;
     let mut out = std::io::stdout().lock();
     if args.json {
         writeln!(out, "{}", serde_json::to_string_pretty(&report)?)?;

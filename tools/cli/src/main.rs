@@ -225,6 +225,10 @@ enum BenchCommand {
         /// Incremental smoother window, states.
         #[arg(long, default_value_t = 30)]
         lag: usize,
+        /// Feed the incremental run one state every 1/HZ seconds, as a live pipeline would
+        /// (the problem's own rate is 10 Hz); default: as fast as the updates go.
+        #[arg(long, value_name = "HZ")]
+        pace_hz: Option<f64>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -339,6 +343,7 @@ fn main() -> ExitCode {
                     lines,
                     batch_only,
                     lag,
+                    pace_hz,
                     json,
                 },
         } => gprflow_cli::bench_estimate::bench_estimate(
@@ -351,6 +356,7 @@ fn main() -> ExitCode {
                 },
                 batch_only,
                 lag_states: lag,
+                pace_hz,
                 json,
             },
         ),

@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# The estimation benchmark, side by side in one run: GTSAM 4.3 and gprflow solve the same
+# problem exported by the GTSAM peer (../shared/peers/gtsam/gtsam_bench.py: N states at 10 Hz,
+# 200 Hz IMU, wheel odometry, a loop closure every 50 states).
+#   1. GTSAM: batch Levenberg-Marquardt, then iSAM2 (QR) one update per state, as fast as it goes;
+#   2. gprflow: batch LM, then the fixed-lag smoother one update per state, as fast as it goes;
+#   3. gprflow: the smoother fed at the problem's 10 Hz, as a live pipeline (N/10 seconds);
+#   4. gprflow: batch LM with one known-line factor per state (the cost of line factors).
+# Results: out/bench-estimate/*.json.
+#
+# usage: tools/peer/bench_estimate.sh [N (2000)]
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+n=${1:-2000}
+venv=.venv-gtsam
+out=out/bench-estimate
+if [ ! -x "$venv/bin/python" ]; then
+    python3 -m venv "$venv"
+fi
+"$venv/bin/python" -c 'import gtsam, numpy' 2>/dev/null || "$venv/bin/pip" install -q gtsam==4.3.0 numpy
+mkdir -p "$out"
+problem="$out/p$n.txt"
+if [ ! -f "$problem" ]; then
+    (cd "$out" && "$OLDPWD/$venv/bin/python" "$OLDPWD/../shared/peers/gtsam/gtsam_bench.py" "$n" --lines \
+        --fact QR --no-isam --no-batch --export "p$n.txt" --out peer >/dev/null)
+fi
+cargo build --release -p gprflow-cli
+gprflow=./target/release/gprflow
+echo "== GTSAM 4.3: batch LM and iSAM2"
+"$venv/bin/python" tools/peer/gtsam_solve.py "$problem" --isam2 | tee "$out/gtsam.json"
+echo "== gprflow: batch LM and the smoother, unpaced"
+"$gprflow" bench estimate "$problem" --json | tee "$out/ours.json"
+echo "== gprflow: the smoother at 10 Hz"
+"$gprflow" bench estimate "$problem" --pace-hz 10 --json | tee "$out/ours-paced.json"
+echo "== gprflow: batch LM with one known-line factor per state"
+"$gprflow" bench estimate "$problem" --lines known --batch-only --json | tee "$out/ours-lines.json"
