@@ -1,10 +1,16 @@
 #!/usr/bin/env bash
-# The main job end to end on the embedded sample recording: replay recordings/toy.mcap
-# through the graph, record the result, and show what was recorded.
+# The main job end to end on the embedded sample recording: replay the simulated parking-garage
+# loop (recordings/sim/garage-loops-60s.mcap: IMU, wheel encoder, GPR, ground truth) through
+# the factor-graph estimator (graphs/odometry.yaml), record the estimate, and show what was
+# recorded, its accuracy against the ground truth and a plot of both (out/demo.png).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
+tools/scripts/ensure-font.sh
 cargo build --release -p gprflow-cli
 out="${1:-out/demo.mcap}"
+recording=recordings/sim/garage-loops-60s.mcap
 mkdir -p "$(dirname "$out")"
-./target/release/gprflow launch graphs/replay-toy.yaml --set recording=recordings/toy.mcap --record "$out"
+./target/release/gprflow launch graphs/odometry.yaml --set recording="$recording" --record "$out"
 ./target/release/gprflow inspect "$out"
+./target/release/gprflow eval "$out" --truth "$recording" --plot "${out%.mcap}.png"
+echo "plot: ${out%.mcap}.png"

@@ -5,10 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 tools/peer/setup-venv.sh
-# plot labels (gprflow eval --plot) need a font: Debian's DejaVu Sans
-if [[ ! -f /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ]] && command -v apt-get >/dev/null && [[ $(id -u) == 0 ]]; then
-    apt-get install -y --no-install-recommends fonts-dejavu-core >/dev/null
-fi
+# plot labels (gprflow eval --plot) need a font
+tools/scripts/ensure-font.sh
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
 # end-to-end tests also run the workspace's other binaries (a user's exec stage)

@@ -287,16 +287,14 @@ impl Stage for EstimateStage {
     fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> Result<(), StageError> {
         self.last_stamp_ns = self.last_stamp_ns.max(input.stamp_ns());
         match input.name() {
-            "initial_pose" => {
-                if !self.origin_seen {
-                    let m: PoseStamped = input.decode()?;
-                    self.origin_seen = true;
-                    if !self.est.set_origin(pose_from_msg(&m.pose)) {
-                        tracing::warn!(
-                            seq = input.seq(),
-                            "initial_pose arrived after the first state; the estimate keeps its own origin"
-                        );
-                    }
+            "initial_pose" if !self.origin_seen => {
+                let m: PoseStamped = input.decode()?;
+                self.origin_seen = true;
+                if !self.est.set_origin(pose_from_msg(&m.pose)) {
+                    tracing::warn!(
+                        seq = input.seq(),
+                        "initial_pose arrived after the first state; the estimate keeps its own origin"
+                    );
                 }
             }
             "imu" => {
