@@ -858,7 +858,7 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
 #[test]
 fn golden_outputs_still_match() {
     let dir = tempfile::tempdir().expect("tempdir");
-    for graph in ["toy", "replay-toy"] {
+    for graph in ["toy", "replay-toy", "odometry"] {
         let golden = repo().join(format!("recordings/golden/{graph}.mcap"));
         assert!(
             golden.exists(),
