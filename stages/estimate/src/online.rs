@@ -554,4 +554,103 @@ mod tests {
             last.trans_m
         );
     }
+
+    /// The circle of `tracks_a_circle_from_imu_and_wheel` at time `t_s`.
+    fn circle_truth(t_s: f64) -> Pose3 {
+        let (radius, omega) = (10.0, 0.1);
+        let a = omega * t_s;
+        let rot = nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), a).into_inner();
+        Pose3::new(rot, Vector3::new(radius * a.sin(), radius * (1.0 - a.cos()), 0.0))
+    }
+
+    /// Drives the circle for 10 s with a wheel that over-reads by `wheel_scale`, feeding the
+    /// lines and registrations `extra` asks for after each state; returns the estimator.
+    fn drive_circle(
+        seconds: i64,
+        wheel_scale: f64,
+        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+    ) -> OnlineEstimator {
+        let params = OnlineParams {
+            smoother: SmootherParams {
+                background: false,
+                ..SmootherParams::default()
+            },
+            first_state: FirstStatePrior {
+                velocity_sigma_mps: 10.0,
+                ..FirstStatePrior::default()
+            },
+            ..OnlineParams::default()
+        };
+        let mut est = OnlineEstimator::new(params);
+        let (speed, omega) = (1.0, 0.1);
+        let dt_ns = 5_000_000i64;
+        for k in 0..=seconds * 200 {
+            let t = k as f64 * dt_ns as f64 * 1e-9;
+            est.wheel(wheel_scale * speed * t);
+            let s = est
+                .imu(
+                    k * dt_ns,
+                    Vector3::new(0.0, speed * omega, 9.80665),
+                    Vector3::new(0.0, 0.0, omega),
+                )
+                .expect("imu");
+            if let Some(s) = s {
+                extra(&mut est, &s);
+            }
+        }
+        est.finish().expect("finish");
+        est
+    }
+
+    fn end_error_m(est: &OnlineEstimator) -> f64 {
+        let traj = est.trajectory().expect("trajectory");
+        let (_, stamp_ns, last) = traj[traj.len() - 1];
+        (last.trans_m - circle_truth(stamp_ns as f64 * 1e-9).trans_m).norm()
+    }
+
+    #[test]
+    fn registrations_correct_a_wrong_wheel_scale() {
+        let without = end_error_m(&drive_circle(10, 1.1, |_, _| {}));
+        // Every 10 states, the true along-track distance to the state 1 s before.
+        let with = end_error_m(&drive_circle(10, 1.1, |est, s| {
+            if s.index >= 10 && s.index % 10 == 0 {
+                let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - 1_000_000_000);
+                let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+                let r = RegistrationMeasurement {
+                    reference_stamp_ns: t_i,
+                    query_stamp_ns: t_j,
+                    relative_pose: rel,
+                    along_track_m: rel.trans_m.x,
+                    covariance: None,
+                };
+                assert!(est.registration(&r).expect("registration"));
+            }
+        }));
+        assert!(without > 0.3, "a 10 % wheel error should show: {without} m");
+        assert!(with < 0.5 * without, "with registrations {with} m, without {without} m");
+    }
+
+    #[test]
+    fn a_crossed_line_is_initialised_and_estimated() {
+        let truth = HoughLine {
+            rho_m: 6.0,
+            theta_rad: 0.2,
+        };
+        // Crossed twice, 16 m apart (one crossing alone has no baseline: every observed point
+        // is the same point of the line).
+        let est = drive_circle(30, 1.0, |est, s| {
+            let (h, _, _) = crate::factors::forward_distance_to_line(&circle_truth(s.stamp_ns as f64 * 1e-9), &truth);
+            if (0.5..4.0).contains(&h) {
+                assert!(est.line(s.stamp_ns, 7, h, 0.05).expect("line"));
+            }
+        });
+        let lines = est.line_map();
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        let (id, line) = lines[0];
+        assert_eq!(id, 7);
+        assert!(
+            (line.rho_m - truth.rho_m).abs() < 0.1 && (line.theta_rad - truth.theta_rad).abs() < 0.02,
+            "{line:?} against {truth:?}"
+        );
+    }
 }
