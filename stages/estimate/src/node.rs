@@ -122,6 +122,8 @@ pub struct EstimateStage {
     last_stamp_ns: i64,
     /// The first `initial_pose` message was seen (later ones are ignored).
     origin_seen: bool,
+    /// Messages dropped as unusable (non-finite values).
+    rejected: u64,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -166,6 +168,27 @@ fn vec_msg(v: &Vector3<f64>) -> Vector3Msg {
 }
 
 impl EstimateStage {
+    /// A measurement the estimator refused (non-finite values) is counted, logged with its
+    /// input and seq, and dropped; any other error fails the stage.
+    fn accept<T>(&mut self, input: &Input<'_>, result: crate::Result<T>) -> Result<Option<T>, StageError> {
+        match result {
+            Ok(v) => Ok(Some(v)),
+            Err(crate::Error::BadMeasurement(why)) => {
+                self.rejected += 1;
+                if self.rejected <= 10 {
+                    tracing::warn!(
+                        input = input.name(),
+                        topic = input.topic(),
+                        seq = input.seq(),
+                        "estimate: dropped: {why}"
+                    );
+                }
+                Ok(None)
+            }
+            Err(e) => Err(StageError::failed(e)),
+        }
+    }
+
     fn publish_state(&mut self, s: &StateOutput, out: &mut Outputs) -> Result<(), StageError> {
         let mut cov = [0.0; 36];
         if let Some(c) = &s.covariance
@@ -281,6 +304,7 @@ impl Stage for EstimateStage {
             params,
             last_stamp_ns: 0,
             origin_seen: false,
+            rejected: 0,
         })
     }
 
@@ -301,15 +325,12 @@ impl Stage for EstimateStage {
                 let m: Imu = input.decode()?;
                 let a = &m.linear_acceleration;
                 let w = &m.angular_velocity;
-                let state = self
-                    .est
-                    .imu(
-                        input.stamp_ns(),
-                        Vector3::new(a.x, a.y, a.z),
-                        Vector3::new(w.x, w.y, w.z),
-                    )
-                    .map_err(StageError::failed)?;
-                if let Some(s) = state {
+                let state = self.est.imu(
+                    input.stamp_ns(),
+                    Vector3::new(a.x, a.y, a.z),
+                    Vector3::new(w.x, w.y, w.z),
+                );
+                if let Some(Some(s)) = self.accept(&input, state)? {
                     self.publish_state(&s, out)?;
                 }
             }
@@ -328,24 +349,27 @@ impl Stage for EstimateStage {
                     along_track_m: m.along_track_m,
                     covariance,
                 };
-                if !self.est.registration(&r).map_err(StageError::failed)? {
+                let added = self.est.registration(&r);
+                if self.accept(&input, added)? == Some(false) {
                     tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
                 }
             }
             "line" => {
                 let m: LineObservation = input.decode()?;
-                self.est
-                    .line(input.stamp_ns(), m.line_id, m.forward_distance_m, m.sigma_m)
-                    .map_err(StageError::failed)?;
+                let added = self
+                    .est
+                    .line(input.stamp_ns(), m.line_id, m.forward_distance_m, m.sigma_m);
+                self.accept(&input, added)?;
             }
             "map_fix" => {
                 let m: MapFix = input.decode()?;
                 let c = &m.covariance.0;
                 let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
                 let p = &m.world_from_body.position;
-                self.est
-                    .map_fix(input.stamp_ns(), Vector2::new(p.x, p.y), [sig(c[0]), sig(c[7])])
-                    .map_err(StageError::failed)?;
+                let added = self
+                    .est
+                    .map_fix(input.stamp_ns(), Vector2::new(p.x, p.y), [sig(c[0]), sig(c[7])]);
+                self.accept(&input, added)?;
             }
             _ => {}
         }
@@ -354,6 +378,12 @@ impl Stage for EstimateStage {
 
     fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
         self.est.finish().map_err(StageError::failed)?;
+        if self.rejected > 0 {
+            tracing::warn!(
+                messages = self.rejected,
+                "estimate: messages dropped as unusable (non-finite values)"
+            );
+        }
         if self.est.dropped_before_origin() > 0 {
             tracing::info!(
                 imu_samples = self.est.dropped_before_origin(),

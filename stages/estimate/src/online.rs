@@ -7,7 +7,6 @@ use std::time::Instant;
 
 use nalgebra::{DMatrix, Vector2, Vector3};
 
-use crate::Result;
 use crate::factors::{
     AlongTrack, BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, VectorPrior,
 };
@@ -18,6 +17,7 @@ use crate::lines::initial_line;
 use crate::noise::{NoiseModel, RobustKernel};
 use crate::smoother::{FixedLagSmoother, SmootherParams};
 use crate::values::{HoughLine, ImuBias, Values, VarId, Variable};
+use crate::{Error, Result};
 
 /// Settings of the online estimator.
 #[derive(Debug, Clone, PartialEq)]
@@ -203,6 +203,11 @@ impl OnlineEstimator {
         acc_mps2: Vector3<f64>,
         gyro_radps: Vector3<f64>,
     ) -> Result<Option<StateOutput>> {
+        if !(acc_mps2.iter().chain(gyro_radps.iter()).all(|v| v.is_finite())) {
+            return Err(Error::BadMeasurement(format!(
+                "IMU sample at {stamp_ns} ns is not finite (acceleration {acc_mps2:?}, angular rate {gyro_radps:?})"
+            )));
+        }
         let mut out = None;
         if self.waiting_for_origin {
             self.dropped_before_origin += 1;
@@ -273,6 +278,13 @@ impl OnlineEstimator {
     /// # Errors
     /// A bad covariance.
     pub fn registration(&mut self, r: &RegistrationMeasurement) -> Result<bool> {
+        let p = &r.relative_pose;
+        if !(r.along_track_m.is_finite() && p.rot.iter().chain(p.trans_m.iter()).all(|v| v.is_finite())) {
+            return Err(Error::BadMeasurement(format!(
+                "registration {} -> {} ns is not finite (along-track {} m)",
+                r.reference_stamp_ns, r.query_stamp_ns, r.along_track_m
+            )));
+        }
         let (Some(i), Some(j)) = (
             self.nearest_state(r.reference_stamp_ns),
             self.nearest_state(r.query_stamp_ns),
@@ -312,6 +324,11 @@ impl OnlineEstimator {
     /// # Errors
     /// A bad sigma.
     pub fn line(&mut self, stamp_ns: i64, line_id: u32, distance_m: f64, sigma_m: f64) -> Result<bool> {
+        if !distance_m.is_finite() {
+            return Err(Error::BadMeasurement(format!(
+                "line {line_id} observation at {stamp_ns} ns: distance {distance_m} m"
+            )));
+        }
         let Some(s) = self.nearest_state(stamp_ns) else {
             return Ok(false);
         };
@@ -363,6 +380,11 @@ impl OnlineEstimator {
     /// # Errors
     /// A bad sigma.
     pub fn map_fix(&mut self, stamp_ns: i64, xy_m: Vector2<f64>, sigma_xy_m: [f64; 2]) -> Result<bool> {
+        if !xy_m.iter().all(|v| v.is_finite()) {
+            return Err(Error::BadMeasurement(format!(
+                "map fix at {stamp_ns} ns: position {xy_m:?}"
+            )));
+        }
         let Some(s) = self.nearest_state(stamp_ns) else {
             return Ok(false);
         };
@@ -652,5 +674,34 @@ mod tests {
             (line.rho_m - truth.rho_m).abs() < 0.1 && (line.theta_rad - truth.theta_rad).abs() < 0.02,
             "{line:?} against {truth:?}"
         );
+    }
+
+    #[test]
+    fn non_finite_measurements_are_refused_and_change_nothing() {
+        let mut est = OnlineEstimator::new(OnlineParams::default());
+        let g = Vector3::new(0.0, 0.0, 9.80665);
+        assert!(est.imu(0, g, Vector3::zeros()).expect("first sample").is_some());
+        let bad = est.imu(5_000_000, Vector3::new(f64::NAN, 0.0, 9.8), Vector3::zeros());
+        assert!(
+            matches!(bad, Err(Error::BadMeasurement(ref m)) if m.contains("5000000 ns")),
+            "{bad:?}"
+        );
+        assert!(matches!(
+            est.line(0, 1, f64::INFINITY, 0.05),
+            Err(Error::BadMeasurement(_))
+        ));
+        assert!(matches!(
+            est.map_fix(0, Vector2::new(f64::NAN, 0.0), [0.5, 0.5]),
+            Err(Error::BadMeasurement(_))
+        ));
+        // The run goes on: the next state comes 100 ms later as usual.
+        let mut states = 1;
+        for k in 2..=40i64 {
+            if est.imu(k * 5_000_000, g, Vector3::zeros()).expect("sample").is_some() {
+                states += 1;
+            }
+        }
+        assert_eq!(states, 3);
+        assert_eq!(est.state_count(), 3);
     }
 }
