@@ -258,6 +258,8 @@ impl HessianStructure {
         let sym = SymbolicSparseColMat::<usize>::new_checked(dim, dim, upper_col_ptr, None, upper_row_idx);
         // Supernodal: the Hessian is made of dense 3x3 to 15x15 blocks, which dense kernels
         // factor much faster than the column-by-column simplicial variant faer picks otherwise.
+        // (Forced, also because the simplicial numeric factorisation would read the upper
+        // triangle, which is not stored.)
         let params = CholeskySymbolicParams {
             supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
             ..Default::default()
