@@ -23,6 +23,12 @@
 //!   threads of visual SLAM systems do. A loop closure that arrives while a solve runs is
 //!   picked up by the next solve.
 //!
+//! The background re-solves are capped at a few iterations (they start from the current
+//! estimate, and the next loop closure continues from their result); [`FixedLagSmoother::finish`]
+//! solves to convergence. On the GTSAM peer's N = 2000 problem fed at 10 Hz, the estimate at
+//! the end of the run is within 0.1 % of the batch optimum's error (iSAM2's on the same run: 3.8x),
+//! the updates take p99 5.6 ms and the re-solves 0.26 s (p50); see the top-level README.
+//!
 //! Known limitation: states leaving the window are conditioned on, not marginalised, so the
 //! window's covariance (and [`FixedLagSmoother::newest_covariance`]) is the covariance given
 //! the older states, smaller than the true marginal. Marginalising the window's tail into a
