@@ -38,9 +38,10 @@ pub enum StageError {
     /// The bus failed.
     #[error(transparent)]
     Bus(#[from] BusError),
-    /// Bad parameters.
+    /// Bad parameters. (Not a `#[source]`: the message already says it, and a chain printer
+    /// would say it twice.)
     #[error("params: {0}")]
-    Params(#[from] ParamError),
+    Params(ParamError),
     /// A port the stage asked for is not bound or has another type.
     #[error("port `{port}`: {reason}")]
     Port {
@@ -52,6 +53,12 @@ pub enum StageError {
     /// A stage-specific failure.
     #[error("{0}")]
     Failed(String),
+}
+
+impl From<ParamError> for StageError {
+    fn from(e: ParamError) -> Self {
+        Self::Params(e)
+    }
 }
 
 impl StageError {

@@ -292,6 +292,31 @@ impl Stage for EstimateStage {
         if params.lag_states == 0 {
             return Err(param_error("lag_states", "must be at least 1".into()));
         }
+        let positive = [
+            ("acc_noise_density", params.acc_noise_density),
+            ("gyro_noise_density", params.gyro_noise_density),
+            ("acc_bias_random_walk", params.acc_bias_random_walk),
+            ("gyro_bias_random_walk", params.gyro_bias_random_walk),
+            ("acc_bias_prior_sigma_mps2", params.acc_bias_prior_sigma_mps2),
+            ("gyro_bias_prior_sigma_radps", params.gyro_bias_prior_sigma_radps),
+            ("gravity_mps2", params.gravity_mps2),
+            ("wheel_sigma_m", params.wheel_sigma_m),
+            ("registration_sigma_m", params.registration_sigma_m),
+        ];
+        for (key, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(param_error(key, format!("must be finite and > 0, got {value}")));
+            }
+        }
+        if !(params.nonholonomic_sigma_mps.is_finite() && params.nonholonomic_sigma_mps >= 0.0) {
+            return Err(param_error(
+                "nonholonomic_sigma_mps",
+                format!(
+                    "must be finite and >= 0 (0: off), got {}",
+                    params.nonholonomic_sigma_mps
+                ),
+            ));
+        }
         let mut est = OnlineEstimator::new(params.online());
         if ports.input("initial_pose").is_some() {
             est.wait_for_origin();
