@@ -507,6 +507,16 @@ fn killed_stage_stops_the_run_and_leaves_nothing_behind() {
     let rec = dir.path().join("killed.mcap");
     let run = LongRun::start(&rec);
     let gain = run.pid_of("gain");
+    // kill only once the recorder has its file open (on a loaded machine start-up can take
+    // longer than any fixed wait), and messages have flowed for a while
+    let start = Instant::now();
+    while !rec.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "the recorder never opened its file"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
     std::thread::sleep(Duration::from_millis(300));
     kill(gain, "-9");
     let id = run.id.clone();
