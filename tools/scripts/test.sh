@@ -13,6 +13,7 @@ cargo clippy --workspace --all-targets -- -D warnings
 cargo build --workspace --bins
 cargo nextest run --workspace --no-fail-fast
 # peer check of the estimation library: GTSAM 4.3 (installed into .venv-gtsam) re-solves the
-# committed problem and must still give the figures our test compares against
+# committed problem and must still give the figures our test (peer_gtsam, run above) compares
+# against
 tools/peer/gtsam_check.sh --verify
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
