@@ -534,50 +534,16 @@ mod tests {
     /// A robot driving a circle at 1 m/s, z up, 200 Hz IMU without noise; wheel odometry.
     #[test]
     fn tracks_a_circle_from_imu_and_wheel() {
-        let params = OnlineParams {
-            smoother: SmootherParams {
-                background: false,
-                ..SmootherParams::default()
-            },
-            // The run starts moving: a weak velocity prior, the wheel fixes the speed.
-            first_state: FirstStatePrior {
-                velocity_sigma_mps: 10.0,
-                ..FirstStatePrior::default()
-            },
-            ..OnlineParams::default()
-        };
-        let mut est = OnlineEstimator::new(params);
-        let (radius, speed) = (10.0, 1.0);
-        let omega = speed / radius;
-        let dt_ns = 5_000_000i64;
         let mut states = 0;
-        for k in 0..=2000i64 {
-            let t = k as f64 * dt_ns as f64 * 1e-9;
-            // Body x along the velocity, centripetal acceleration along body y; at rest the
-            // accelerometer reads +g up.
-            let acc = Vector3::new(0.0, speed * omega, 9.81);
-            let gyro = Vector3::new(0.0, 0.0, omega);
-            est.wheel(speed * t);
-            if est.imu(k * dt_ns, acc, gyro).expect("imu").is_some() {
-                states += 1;
-            }
-        }
+        let est = drive_circle(10, 1.0, |_, _| states += 1);
         assert!(states >= 90, "{states} states");
-        est.finish().expect("finish");
         assert_eq!(est.late_updates(), 0);
-        let traj = est.trajectory().expect("trajectory");
-        assert_eq!(traj.len(), states);
-        let (_, stamp_ns, last) = traj[traj.len() - 1];
-        let angle = omega * stamp_ns as f64 * 1e-9;
-        let truth = Vector3::new(radius * angle.sin(), radius * (1.0 - angle.cos()), 0.0);
-        assert!(
-            (last.trans_m - truth).norm() < 0.5,
-            "end {:?} truth {truth:?}",
-            last.trans_m
-        );
+        assert_eq!(est.trajectory().expect("trajectory").len(), states);
+        let error = end_error_m(&est);
+        assert!(error < 0.5, "{error} m from the truth at the end");
     }
 
-    /// The circle of `tracks_a_circle_from_imu_and_wheel` at time `t_s`.
+    /// The circle the tests drive (radius 10 m, 1 m/s, starting at the origin along x) at `t_s`.
     fn circle_truth(t_s: f64) -> Pose3 {
         let (radius, omega) = (10.0, 0.1);
         let a = omega * t_s;
@@ -604,6 +570,9 @@ mod tests {
             ..OnlineParams::default()
         };
         let mut est = OnlineEstimator::new(params);
+        // Body x along the velocity, centripetal acceleration along body y; at rest the
+        // accelerometer reads +g up. The run starts moving: a weak velocity prior, the wheel
+        // fixes the speed.
         let (speed, omega) = (1.0, 0.1);
         let dt_ns = 5_000_000i64;
         for k in 0..=seconds * 200 {
