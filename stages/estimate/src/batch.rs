@@ -130,17 +130,12 @@ pub fn levenberg_marquardt_keep_hessian(
         loop {
             report.linear_solves += 1;
             let t = Instant::now();
-            let factored = match &mut factorization {
-                Some(f) => f.refactor(&st, &ne.hessian, lambda),
-                None => Factorization::new(&st, &ne.hessian, lambda).map(|f| {
-                    factorization = Some(f);
-                }),
+            // The factorisation's buffers are kept for the next solve.
+            let factored = match factorization.as_mut() {
+                Some(f) => f.refactor(&st, &ne.hessian, lambda).map(|()| &*f),
+                None => Factorization::new(&st, &ne.hessian, lambda).map(|f| &*factorization.insert(f)),
             };
-            let step = match factored.and_then(|()| {
-                factorization
-                    .as_ref()
-                    .ok_or(Error::LinearSolve("no factorisation".into()))
-            }) {
+            let step = match factored {
                 Ok(f) => {
                     let mut dx = ne.gradient.as_slice().to_vec();
                     f.solve_in_place(&mut dx);

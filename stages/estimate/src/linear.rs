@@ -9,7 +9,7 @@ use std::collections::BTreeSet;
 
 use std::sync::Arc;
 
-use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::linalg::amd;
 use faer::sparse::linalg::cholesky::{
@@ -209,13 +209,16 @@ impl HessianStructure {
         let (pattern, dims) = block_pattern(graph, factors, free);
         let elimination_position = minimum_degree_positions(&pattern, dims.len())?;
         let ordering = Self::eliminate(values, free, &elimination_position);
-        let (elim_pattern, _) = block_pattern(graph, factors, &ordering);
-        let elim_dims: Vec<usize> = ordering
-            .free
-            .iter()
-            .filter_map(|v| ordering.slot(*v).map(|s| s.1))
-            .collect();
-        let nvar = elim_dims.len();
+        // The same blocks and dimensions, renumbered into elimination order.
+        let nvar = dims.len();
+        let mut elim_dims = vec![0; nvar];
+        for (p, d) in dims.iter().enumerate() {
+            elim_dims[elimination_position[p]] = *d;
+        }
+        let elim_pattern = pattern.iter().map(|&(a, b)| {
+            let (ea, eb) = (elimination_position[a], elimination_position[b]);
+            (ea.max(eb), ea.min(eb))
+        });
         let mut offsets = Vec::with_capacity(nvar);
         let mut dim = 0;
         for d in &elim_dims {
@@ -224,7 +227,7 @@ impl HessianStructure {
         }
         // Rows of each column variable: the variables at or below it that share a factor.
         let mut rows_of: Vec<Vec<usize>> = vec![Vec::new(); nvar];
-        for &(a, b) in &elim_pattern {
+        for (a, b) in elim_pattern {
             rows_of[b].push(a);
         }
         let mut col_ptr = Vec::with_capacity(dim + 1);
@@ -274,7 +277,7 @@ impl HessianStructure {
             row_idx,
             diag,
             segments,
-            symbolic: { Arc::new(symbolic) },
+            symbolic: Arc::new(symbolic),
             pattern,
             dims,
         })
@@ -504,10 +507,7 @@ impl Factorization {
     /// [`Error::LinearSolve`] when the matrix is not positive definite.
     pub fn new(structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<Self> {
         let symbolic = structure.symbolic.clone();
-        let scratch = MemBuffer::new(StackReq::any_of(&[
-            symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
-            symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
-        ]));
+        let scratch = MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
         let mut f = Self {
             values: vec![0.0; symbolic.len_val()],
             damped: Vec::with_capacity(hessian.len()),
