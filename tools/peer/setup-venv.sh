@@ -31,6 +31,6 @@ fi
 rm -f "$stamp"
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
     --requirement "$reqs"
-"$venv/bin/python" -c "import mcap, mcap_ros2.decoder, lz4, zstandard, evo"
+"$venv/bin/python" -c "import mcap, mcap_ros2.decoder, lz4, zstandard, evo, scipy.signal, pywt, skimage.restoration"
 echo "$want" > "$stamp"
 echo "peer venv ready: $venv"

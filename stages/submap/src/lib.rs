@@ -1,0 +1,1 @@
+//! Odometry-based submaps (seed 000 §4.4, eq. 4.11).
