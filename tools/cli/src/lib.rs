@@ -11,6 +11,7 @@ use gprflow::record::{RecordStage, ReplayStage};
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
+use gprflow_submap::node::SubmapStage;
 
 /// Every stage kind this build can run.
 pub fn catalog() -> StageCatalog {
@@ -18,6 +19,7 @@ pub fn catalog() -> StageCatalog {
         .with(describe::<ToySource>())
         .with(describe::<ToyGain>())
         .with(describe::<EstimateStage>())
+        .with(describe::<SubmapStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -43,6 +45,7 @@ pub fn run_stage(
         ToySource::NAME => run::<ToySource>(spec, &transport, stop),
         ToyGain::NAME => run::<ToyGain>(spec, &transport, stop),
         EstimateStage::NAME => run::<EstimateStage>(spec, &transport, stop),
+        SubmapStage::NAME => run::<SubmapStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(
