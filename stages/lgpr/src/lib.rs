@@ -7,6 +7,9 @@
 //! - `node` (feature `node`, default): the `lgpr_dsp` stage, the only module that touches the
 //!   runtime.
 
+pub mod error;
 #[cfg(feature = "node")]
 pub mod node;
 pub mod sfcw;
+
+pub use error::{Error, Result};
