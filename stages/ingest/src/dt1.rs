@@ -108,7 +108,7 @@ pub struct Dt1TraceHeader {
     pub samples: f32,
     /// (12) Topography (elevation), in position units.
     pub topography: f32,
-    /// (16) Unused (in `SnS_WARR_XLINE00.DT1` it holds an integer, the position in cm, whose
+    /// (16) Unused (in `SnS_WARR_XLINE00.DT1` it holds an integer, the position in mm, whose
     /// bits read as a denormal float).
     pub unused_16: f32,
     /// (20) Bytes per sample (2 or 4).
