@@ -228,3 +228,90 @@ fn pulse_ekko_warr_gather_reads() {
     assert_eq!(&hd_only, hd);
     assert_eq!(&radargram, r);
 }
+
+mod never_panic {
+    use super::*;
+    use gprflow_ingest::dt1::{parse_dt1, parse_hd};
+    use gprflow_ingest::dzt::parse_dzt;
+    use proptest::prelude::*;
+
+    fn real(name: &str) -> Vec<u8> {
+        std::fs::read(data_dir().join(name)).expect("the real file reads")
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(128))]
+
+        /// A DZT cut anywhere: refused in the header, else the complete traces and at most one
+        /// reported partial one.
+        #[test]
+        fn truncated_dzt_keeps_complete_traces(cut in 0_usize..1_065_984) {
+            let bytes = real("GSSI_FILE____032.DZT");
+            match parse_dzt(&bytes[..cut], Path::new("cut.DZT")) {
+                Ok((_, r)) => {
+                    prop_assert!(cut >= 1024);
+                    prop_assert_eq!(r.traces.len(), (cut - 1024) / 1024);
+                    prop_assert_eq!(r.dropped.len(), usize::from((cut - 1024) % 1024 != 0));
+                    prop_assert!(r.traces.iter().all(|t| t.samples.len() == 512));
+                }
+                Err(e) => prop_assert!(cut < 1024, "{e}"),
+            }
+        }
+
+        /// Random bytes written over the real DZT header never panic the reader.
+        #[test]
+        fn mangled_dzt_header_never_panics(
+            edits in prop::collection::vec((0_usize..1024, any::<u8>()), 1..16),
+        ) {
+            let mut bytes = real("GSSI_FILE____032.DZT");
+            for (at, value) in edits {
+                bytes[at] = value;
+            }
+            let _ = parse_dzt(&bytes, Path::new("mangled.DZT"));
+        }
+
+        /// A DT1 cut anywhere against its real HD: never a panic; when it reads, every trace is
+        /// complete and a cut trace is reported.
+        #[test]
+        fn truncated_dt1_never_panics(cut in 0_usize..1_660_968, which in any::<bool>()) {
+            let (name, points) = if which {
+                ("SnS_ComOffs_XLINE00", 1500)
+            } else {
+                ("SnS_WARR_XLINE00", 1900)
+            };
+            let hd_bytes = real(&format!("{name}.HD"));
+            let hd = parse_hd(&String::from_utf8_lossy(&hd_bytes), Path::new("x.HD")).expect("real HD");
+            let bytes = real(&format!("{name}.DT1"));
+            let cut = cut.min(bytes.len());
+            let record = 128 + 2 * points;
+            match parse_dt1(hd, Path::new("x.HD"), &bytes[..cut], Path::new("cut.DT1")) {
+                Ok(line) => {
+                    prop_assert_eq!(line.radargram.traces.len(), cut / record);
+                    prop_assert_eq!(line.radargram.dropped.len(), usize::from(cut % record != 0));
+                }
+                Err(e) => prop_assert!(cut % record == 0 && cut < bytes.len(), "{e}"),
+            }
+        }
+
+        /// Random bytes written over the real DT1 trace headers and HD never panic the reader.
+        #[test]
+        fn mangled_dt1_never_panics(
+            edits in prop::collection::vec((0_usize..644_192, any::<u8>()), 1..32),
+            hd_edits in prop::collection::vec((0_usize..783, 0x20_u8..0x7f), 0..8),
+        ) {
+            let mut bytes = real("SnS_WARR_XLINE00.DT1");
+            let mut hd = real("SnS_WARR_XLINE00.HD");
+            for (at, value) in edits {
+                // Mostly the trace headers, where the structure lives.
+                let at = (at / 3928) * 3928 + at % 128;
+                bytes[at] = value;
+            }
+            for (at, value) in hd_edits {
+                hd[at] = value;
+            }
+            if let Ok(hd) = parse_hd(&String::from_utf8_lossy(&hd), Path::new("x.HD")) {
+                let _ = parse_dt1(hd, Path::new("x.HD"), &bytes, Path::new("mangled.DT1"));
+            }
+        }
+    }
+}
