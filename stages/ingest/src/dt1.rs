@@ -27,7 +27,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::error::{DropReason, Dropped, Error, Record, Result};
-use crate::radargram::{Format, Radargram, RawSamples, RawTrace, le_bytes};
+use crate::radargram::{Format, Radargram, RawTrace, ascii_text, le_bytes, signed_le_samples};
 
 /// Size of a DT1 trace header (bytes).
 pub const DT1_TRACE_HEADER_BYTES: usize = 128;
@@ -146,8 +146,6 @@ impl Dt1TraceHeader {
         }
         let f = |at| f32::from_le_bytes(le_bytes(bytes, at));
         let d = |at| f64::from_le_bytes(le_bytes(bytes, at));
-        let comment = bytes.get(100..128).unwrap_or_default();
-        let end = comment.iter().position(|&b| b == 0).unwrap_or(comment.len());
         Some(Self {
             trace_number: f(0),
             position: f(4),
@@ -165,12 +163,7 @@ impl Dt1TraceHeader {
             unused_88: f(88),
             time_of_day_s: f(92),
             comment_flag: f(96),
-            comment: comment[..end]
-                .iter()
-                .map(|&b| if b.is_ascii() { char::from(b) } else { '?' })
-                .collect::<String>()
-                .trim()
-                .to_owned(),
+            comment: ascii_text(bytes.get(100..128).unwrap_or_default()),
         })
     }
 }
@@ -382,7 +375,7 @@ pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) ->
             dropped.push(truncated(dt1_path, index, rest.len(), this_record));
             break;
         };
-        samples.push(decode_samples(data, width));
+        samples.push(signed_le_samples(data, width));
         trace_headers.push(header);
         at += this_record;
     }
@@ -432,23 +425,5 @@ fn truncated(file: &Path, index: usize, got: usize, want: usize) -> Dropped {
         file: file.to_owned(),
         record: Record::Trace(index),
         reason: DropReason::Truncated { got, want },
-    }
-}
-
-fn decode_samples(bytes: &[u8], width: usize) -> RawSamples {
-    if width == 4 {
-        RawSamples::I32(
-            bytes
-                .chunks_exact(4)
-                .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect(),
-        )
-    } else {
-        RawSamples::I16(
-            bytes
-                .chunks_exact(2)
-                .map(|c| i16::from_le_bytes([c[0], c[1]]))
-                .collect(),
-        )
     }
 }

@@ -27,7 +27,7 @@
 use std::path::Path;
 
 use crate::error::{DropReason, Dropped, Error, Record, Result};
-use crate::radargram::{Format, Radargram, RawSamples, RawTrace, le_bytes};
+use crate::radargram::{Format, Radargram, RawSamples, RawTrace, ascii_text, le_bytes, signed_le_samples};
 
 /// Size of one channel header (bytes).
 pub const DZT_HEADER_BYTES: usize = 1024;
@@ -204,12 +204,12 @@ impl DztHeader {
             line_order: byte(96) & 0x0f,
             slice_type: byte(96) >> 4,
             data_type: byte(97),
-            antenna_name: ascii_field(block.get(98..112).unwrap_or_default()),
+            antenna_name: ascii_text(block.get(98..112).unwrap_or_default()),
             pass0_tx_mask: byte(112) & 0x0f,
             pass1_tx_mask: byte(112) >> 4,
             version: byte(113) & 0x07,
             system: byte(113) >> 3,
-            initial_name: ascii_field(block.get(114..126).unwrap_or_default()),
+            initial_name: ascii_text(block.get(114..126).unwrap_or_default()),
             checksum: u16_at(126),
         })
     }
@@ -234,17 +234,6 @@ impl DztHeader {
     pub fn center_frequency_hz(&self) -> f64 {
         frequency_in_name_hz(&self.antenna_name)
     }
-}
-
-/// Text up to the first NUL, non-ASCII bytes replaced, surrounding blanks removed.
-fn ascii_field(bytes: &[u8]) -> String {
-    let end = bytes.iter().position(|&b| b == 0).unwrap_or(bytes.len());
-    bytes[..end]
-        .iter()
-        .map(|&b| if b.is_ascii() { char::from(b) } else { '?' })
-        .collect::<String>()
-        .trim()
-        .to_owned()
 }
 
 /// `400MHz` -> 4e8, `1.6 GHz` -> 1.6e9; NaN when the name has no such number.
@@ -401,12 +390,7 @@ fn decode_samples(bytes: &[u8], bits: u16) -> RawSamples {
                 .map(|c| (u16::from_le_bytes([c[0], c[1]]) ^ 0x8000) as i16)
                 .collect(),
         ),
-        _ => RawSamples::I32(
-            bytes
-                .chunks_exact(4)
-                .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect(),
-        ),
+        _ => signed_le_samples(bytes, 4),
     }
 }
 

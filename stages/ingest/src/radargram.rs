@@ -114,3 +114,33 @@ pub(crate) fn le_bytes<const N: usize>(bytes: &[u8], at: usize) -> [u8; N] {
     }
     out
 }
+
+/// Text up to the first NUL, non-ASCII bytes replaced by `?`, surrounding blanks removed.
+pub(crate) fn ascii_text(bytes: &[u8]) -> String {
+    let end = bytes.iter().position(|&b| b == 0).unwrap_or(bytes.len());
+    bytes[..end]
+        .iter()
+        .map(|&b| if b.is_ascii() { char::from(b) } else { '?' })
+        .collect::<String>()
+        .trim()
+        .to_owned()
+}
+
+/// Little-endian signed samples of `width` bytes (2 or 4; anything else reads as 4).
+pub(crate) fn signed_le_samples(bytes: &[u8], width: usize) -> RawSamples {
+    if width == 2 {
+        RawSamples::I16(
+            bytes
+                .chunks_exact(2)
+                .map(|c| i16::from_le_bytes([c[0], c[1]]))
+                .collect(),
+        )
+    } else {
+        RawSamples::I32(
+            bytes
+                .chunks_exact(4)
+                .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        )
+    }
+}
