@@ -229,9 +229,9 @@ pub fn find_hd(dt1: &Path) -> Result<PathBuf> {
         .ok_or_else(missing)
 }
 
-/// Parses the text of an HD file; `path` only names it in errors. `NUMBER OF TRACES`,
-/// `NUMBER OF PTS/TRC` and `TOTAL TIME WINDOW` are required; a documented key whose value is
-/// not a number is an error naming the line.
+/// Parses the text of an HD file; `path` only names it in errors. Keys match in any case.
+/// `NUMBER OF TRACES`, `NUMBER OF PTS/TRC` and `TOTAL TIME WINDOW` are required; a documented
+/// key whose value is not a number is an error naming the line.
 pub fn parse_hd(text: &str, path: &Path) -> Result<HdHeader> {
     let mut hd = HdHeader::default();
     let mut traces = None;
@@ -270,7 +270,7 @@ pub fn parse_hd(text: &str, path: &Path) -> Result<HdHeader> {
                 Err(bad("not a whole number >= 0"))
             }
         };
-        match key {
+        match key.to_ascii_uppercase().as_str() {
             "NUMBER OF TRACES" => traces = Some(count()?),
             "NUMBER OF PTS/TRC" => points = Some(count()?),
             "TIMEZERO AT POINT" => hd.timezero_at_point = Some(real()?),
@@ -361,7 +361,7 @@ pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) ->
             let hd_says = format!("HD says {points}");
             return Err(disagree(Record::Trace(index), "samples", found, hd_says));
         }
-        let this_record = DT1_TRACE_HEADER_BYTES + points * width;
+        let this_record = points.saturating_mul(width).saturating_add(DT1_TRACE_HEADER_BYTES);
         match record_bytes {
             None => record_bytes = Some(this_record),
             Some(first) if first != this_record => {

@@ -333,7 +333,7 @@ pub fn parse_dzt(bytes: &[u8], path: &Path) -> Result<(DztHeader, Radargram)> {
 
     let samples = usize::from(header.samples_per_trace);
     let trace_bytes = samples * header.bytes_per_sample();
-    let scan_bytes = trace_bytes * channels;
+    let scan_bytes = trace_bytes.saturating_mul(channels);
     let data = bytes.get(offset..).unwrap_or_default();
     let scans = data.chunks_exact(scan_bytes);
     let mut dropped = Vec::new();
