@@ -181,14 +181,23 @@ impl SfcwChain {
                 });
             }
             Some(f) => (
-                f.ratio().iter().enumerate().map(|(k, r)| weights[k % bins] / r).collect(),
+                f.ratio()
+                    .iter()
+                    .enumerate()
+                    .map(|(k, r)| weights[k % bins] / r)
+                    .collect(),
                 weights,
             ),
             None => (weights.repeat(channels), Vec::new()),
         };
         let keep = params.keep_samples;
         let high_pass = DistanceHighPass::new(channels * keep, params.iir_distance_m)?;
-        let gain = RangeGain::new(&params.range_gain, params.delay_ns, transform.sample_interval_ns(), keep)?;
+        let gain = RangeGain::new(
+            &params.range_gain,
+            params.delay_ns,
+            transform.sample_interval_ns(),
+            keep,
+        )?;
         Ok(Self {
             params,
             channels,
@@ -256,7 +265,13 @@ impl SfcwChain {
     /// below [`MIN_DIVISOR_MAGNITUDE`]; a negative or non-finite distance (sweep named). These
     /// leave the chain unchanged. `Overflow` (an output beyond `f32`, only for inputs near the
     /// `f32` range) comes after the high-pass has taken the sweep in.
-    pub fn process(&mut self, values: &[f32], calibration: &[f32], distance_since_last_m: f64, out: &mut [f32]) -> Result<()> {
+    pub fn process(
+        &mut self,
+        values: &[f32],
+        calibration: &[f32],
+        distance_since_last_m: f64,
+        out: &mut [f32],
+    ) -> Result<()> {
         let keep = self.params.keep_samples;
         if out.len() != self.time.len() {
             return Err(Error::Size {

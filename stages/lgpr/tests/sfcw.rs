@@ -5,8 +5,8 @@ use std::f64::consts::{PI, TAU};
 
 use gprflow_lgpr::error::ToneIndex;
 use gprflow_lgpr::sfcw::{
-    DistanceHighPass, FactoryCalibration, InverseTransform, RangeGainParams, SfcwChain, SfcwParams,
-    chebyshev_window, tone_weights,
+    DistanceHighPass, FactoryCalibration, InverseTransform, RangeGainParams, SfcwChain, SfcwParams, chebyshev_window,
+    tone_weights,
 };
 use gprflow_lgpr::{Error, Result};
 use proptest::prelude::*;
@@ -41,7 +41,9 @@ impl Hardware {
         let gain = (0..CHANNELS * TONES)
             .map(|k| Complex64::from_polar(1.0 + 0.02 * (k / TONES) as f64, 0.3 * (k % TONES) as f64 / TONES as f64))
             .collect();
-        let cal_path = (0..TONES).map(|m| Complex64::from_polar(1.0, -TAU * frequency_hz(m) * 1.5e-9)).collect();
+        let cal_path = (0..TONES)
+            .map(|m| Complex64::from_polar(1.0, -TAU * frequency_hz(m) * 1.5e-9))
+            .collect();
         Self { gain, cal_path }
     }
 
@@ -52,7 +54,12 @@ impl Hardware {
 
     /// A sweep through a receive chain of gain `chain` seeing `scene(m)` on every channel.
     fn sweep(&self, chain: Complex64, scene: impl Fn(usize) -> Complex64) -> (Vec<f32>, Vec<f32>) {
-        let values = interleave(self.gain.iter().enumerate().map(|(k, g)| chain * g * (1.0 + scene(k % TONES))));
+        let values = interleave(
+            self.gain
+                .iter()
+                .enumerate()
+                .map(|(k, g)| chain * g * (1.0 + scene(k % TONES))),
+        );
         let calibration = interleave(self.cal_path.iter().map(|k| chain * k));
         (values, calibration)
     }
@@ -87,12 +94,22 @@ fn a_reflector_on_the_sample_grid_peaks_at_its_delay_plus_8_ns_with_its_amplitud
     assert!((dt - 1e9 / (1024.0 * DF_HZ)).abs() < 1e-12);
     let sample = 200;
     let t_ns = sample as f64 * dt - params.delay_ns;
-    let spectrum: Vec<Complex64> = weights.iter().enumerate().map(|(m, w)| w * reflector(0.7, t_ns)(m)).collect();
+    let spectrum: Vec<Complex64> = weights
+        .iter()
+        .enumerate()
+        .map(|(m, w)| w * reflector(0.7, t_ns)(m))
+        .collect();
     let mut time = vec![0.0; 369];
     transform.process(&spectrum, &mut time).expect("process");
-    let peak = (0..time.len()).max_by(|&a, &b| time[a].abs().total_cmp(&time[b].abs())).expect("samples");
+    let peak = (0..time.len())
+        .max_by(|&a, &b| time[a].abs().total_cmp(&time[b].abs()))
+        .expect("samples");
     assert_eq!(peak, sample);
-    assert!((time[sample] - 0.7).abs() < EXACT_TOL, "unit-sum window: peak {} != 0.7", time[sample]);
+    assert!(
+        (time[sample] - 0.7).abs() < EXACT_TOL,
+        "unit-sum window: peak {} != 0.7",
+        time[sample]
+    );
 }
 
 #[test]
@@ -113,16 +130,30 @@ fn a_reflector_through_the_chain_appears_at_tau_plus_8_ns() {
     let beta = (-distance_m / 5.0f64).exp2();
     let expected = ((t_ns + chain.time_zero_ns()) / dt).round() as usize;
     for (ch, trace) in out.chunks_exact(chain.out_samples()).enumerate() {
-        let peak = (0..trace.len()).max_by(|&a, &b| trace[a].abs().total_cmp(&trace[b].abs())).expect("samples");
-        assert!(peak.abs_diff(expected) <= 1, "channel {ch}: peak at {peak}, expected {expected}");
+        let peak = (0..trace.len())
+            .max_by(|&a, &b| trace[a].abs().total_cmp(&trace[b].abs()))
+            .expect("samples");
+        assert!(
+            peak.abs_diff(expected) <= 1,
+            "channel {ch}: peak at {peak}, expected {expected}"
+        );
         let ratio = f64::from(trace[peak]) / (beta * amplitude);
-        assert!((0.95..=1.0 + 1e-4).contains(&ratio), "channel {ch}: peak {} of {}", trace[peak], beta * amplitude);
+        assert!(
+            (0.95..=1.0 + 1e-4).contains(&ratio),
+            "channel {ch}: peak {} of {}",
+            trace[peak],
+            beta * amplitude
+        );
     }
 }
 
 /// |sum_n w_n exp(-j 2 pi nu n)| at `nu` cycles per tap.
 fn window_response(taps: &[f64], nu: f64) -> f64 {
-    let z: Complex64 = taps.iter().enumerate().map(|(n, w)| Complex64::from_polar(*w, -TAU * nu * n as f64)).sum();
+    let z: Complex64 = taps
+        .iter()
+        .enumerate()
+        .map(|(n, w)| Complex64::from_polar(*w, -TAU * nu * n as f64))
+        .sum();
     z.norm()
 }
 
@@ -131,19 +162,32 @@ fn the_chebyshev_window_has_equal_side_lobes_45_db_down() {
     for len in [TONES, 50, 11] {
         let taps = chebyshev_window(len, 45.0).expect("window");
         assert!((taps[len / 2] - 1.0).abs() < EXACT_TOL || (taps[(len - 1) / 2] - 1.0).abs() < EXACT_TOL);
-        assert!((0..len).all(|i| (taps[i] - taps[len - 1 - i]).abs() < EXACT_TOL), "symmetric");
+        assert!(
+            (0..len).all(|i| (taps[i] - taps[len - 1 - i]).abs() < EXACT_TOL),
+            "symmetric"
+        );
         let grid = 1 << 14;
-        let response: Vec<f64> = (0..=grid).map(|k| window_response(&taps, 0.5 * k as f64 / grid as f64)).collect();
-        let first_null = (1..grid).find(|&k| response[k + 1] > response[k]).expect("main lobe ends");
+        let response: Vec<f64> = (0..=grid)
+            .map(|k| window_response(&taps, 0.5 * k as f64 / grid as f64))
+            .collect();
+        let first_null = (1..grid)
+            .find(|&k| response[k + 1] > response[k])
+            .expect("main lobe ends");
         let side = response[first_null..].iter().copied().fold(0.0, f64::max);
         let level_db = 20.0 * (side / response[0]).log10();
-        assert!((level_db + 45.0).abs() < SIDE_LOBE_TOL_DB, "len {len}: side lobes at {level_db} dB");
+        assert!(
+            (level_db + 45.0).abs() < SIDE_LOBE_TOL_DB,
+            "len {len}: side lobes at {level_db} dB"
+        );
         // the response is T_n(x0 cos(pi nu)), n = len - 1: its first null is where
         // x0 cos(pi nu) = cos(pi / 2n), the largest zero of T_n
         let order = (len - 1) as f64;
         let x0 = ((10f64.powf(45.0 / 20.0)).acosh() / order).cosh();
         let null_nu = ((PI / (2.0 * order)).cos() / x0).acos() / PI;
-        assert!((0.5 * first_null as f64 / grid as f64 - null_nu).abs() < 1e-3, "len {len}: first null");
+        assert!(
+            (0.5 * first_null as f64 / grid as f64 - null_nu).abs() < 1e-3,
+            "len {len}: first null"
+        );
     }
 }
 
@@ -159,7 +203,11 @@ fn the_high_pass_removes_the_ground_bounce_and_keeps_a_short_feature() {
         let bump = if (10.0..10.5).contains(&x_m) { feature } else { 0.0 };
         let mut sweep = [3.0, 3.0 + bump];
         filter.apply(&mut sweep, spacing_m).expect("apply");
-        assert!(sweep[0].abs() < EXACT_TOL, "ground bounce left at {x_m} m: {}", sweep[0]);
+        assert!(
+            sweep[0].abs() < EXACT_TOL,
+            "ground bounce left at {x_m} m: {}",
+            sweep[0]
+        );
         if bump > 0.0 {
             kept = kept.max(sweep[1]);
         } else if x_m < 10.0 {
@@ -183,7 +231,12 @@ fn the_high_pass_removes_the_ground_bounce_and_keeps_a_short_feature() {
 fn the_same_sweeps_give_the_same_output_and_reset_starts_over() {
     let hw = Hardware::new();
     let sweeps: Vec<_> = (0..5)
-        .map(|i| hw.sweep(Complex64::from_polar(1.0, 0.01 * f64::from(i)), reflector(0.02, 10.0 + f64::from(i))))
+        .map(|i| {
+            hw.sweep(
+                Complex64::from_polar(1.0, 0.01 * f64::from(i)),
+                reflector(0.02, 10.0 + f64::from(i)),
+            )
+        })
         .collect();
     let record = |chain: &mut SfcwChain| {
         let mut all = Vec::new();
@@ -210,35 +263,76 @@ fn bad_sweeps_are_errors_that_name_the_place_and_leave_the_chain_unchanged() {
     let mut out = vec![0.0f32; CHANNELS * chain.out_samples()];
     let (values, cal) = hw.sweep(Complex64::new(1.0, 0.0), reflector(0.02, 12.0));
 
-    let err = chain.process(&values[1..], &cal, 0.1, &mut out).unwrap_err();
+    let err = chain
+        .process(&values[1..], &cal, 0.1, &mut out)
+        .expect_err("must be refused");
     assert!(matches!(err, Error::Size { what: "values", .. }), "{err}");
-    let err = chain.process(&values, &cal[2..], 0.1, &mut out).unwrap_err();
-    assert!(matches!(err, Error::Size { what: "calibration", .. }), "{err}");
-    let err = chain.process(&values, &cal, 0.1, &mut out[1..]).unwrap_err();
+    let err = chain
+        .process(&values, &cal[2..], 0.1, &mut out)
+        .expect_err("must be refused");
+    assert!(
+        matches!(
+            err,
+            Error::Size {
+                what: "calibration",
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let err = chain
+        .process(&values, &cal, 0.1, &mut out[1..])
+        .expect_err("must be refused");
     assert!(matches!(err, Error::Size { what: "out", .. }), "{err}");
 
     let mut bad = values.clone();
     bad[(2 * TONES + 7) * 2 + 1] = f32::NAN;
-    let err = chain.process(&bad, &cal, 0.1, &mut out).unwrap_err();
+    let err = chain.process(&bad, &cal, 0.1, &mut out).expect_err("must be refused");
     let at = ToneIndex {
         channel: Some(2),
         tone: 7,
     };
-    assert!(matches!(err, Error::NonFinite { what: "values", at: a, .. } if a == at), "{err}");
+    assert!(
+        matches!(err, Error::NonFinite { what: "values", at: a, .. } if a == at),
+        "{err}"
+    );
     assert!(err.to_string().contains("channel 2 tone 7"), "{err}");
 
     let mut bad = cal.clone();
     bad[6] = f32::INFINITY;
-    let err = chain.process(&values, &bad, 0.1, &mut out).unwrap_err();
-    assert!(matches!(err, Error::NonFinite { what: "calibration", at: ToneIndex { channel: None, tone: 3 }, .. }), "{err}");
+    let err = chain
+        .process(&values, &bad, 0.1, &mut out)
+        .expect_err("must be refused");
+    assert!(
+        matches!(
+            err,
+            Error::NonFinite {
+                what: "calibration",
+                at: ToneIndex { channel: None, tone: 3 },
+                ..
+            }
+        ),
+        "{err}"
+    );
     bad[6] = 0.0;
     bad[7] = 0.0;
-    let err = chain.process(&values, &bad, 0.1, &mut out).unwrap_err();
-    assert!(matches!(err, Error::ZeroDivisor { at: ToneIndex { channel: None, tone: 3 }, .. }), "{err}");
+    let err = chain
+        .process(&values, &bad, 0.1, &mut out)
+        .expect_err("must be refused");
+    assert!(
+        matches!(
+            err,
+            Error::ZeroDivisor {
+                at: ToneIndex { channel: None, tone: 3 },
+                ..
+            }
+        ),
+        "{err}"
+    );
 
     chain.process(&values, &cal, 0.0, &mut out).expect("sweep 0");
     for d in [-0.01, f64::NAN, f64::INFINITY] {
-        let err = chain.process(&values, &cal, d, &mut out).unwrap_err();
+        let err = chain.process(&values, &cal, d, &mut out).expect_err("must be refused");
         assert!(matches!(err, Error::Distance { sweep: 1, .. }), "{err}");
         assert!(err.to_string().contains("sweep 1"), "{err}");
     }
@@ -271,16 +365,40 @@ fn bad_parameters_are_errors_that_name_the_key() {
     assert_eq!(param_key(with(|p| p.time_samples = 50)), "time_samples");
     assert_eq!(param_key(with(|p| p.iir_distance_m = 0.0)), "iir_distance_m");
     assert_eq!(param_key(with(|p| p.iir_distance_m = f64::NAN)), "iir_distance_m");
-    assert_eq!(param_key(with(|p| p.window_attenuation_db = -3.0)), "window_attenuation_db");
+    assert_eq!(
+        param_key(with(|p| p.window_attenuation_db = -3.0)),
+        "window_attenuation_db"
+    );
     assert_eq!(param_key(with(|p| p.delay_ns = f64::INFINITY)), "delay_ns");
-    assert_eq!(param_key(with(|p| p.range_gain.reference_ns = 0.0)), "range_gain.reference_ns");
-    assert_eq!(param_key(with(|p| p.range_gain.spreading_exponent = -1.0)), "range_gain.spreading_exponent");
-    assert_eq!(param_key(with(|p| p.range_gain.attenuation_db_per_ns = 1e6)), "range_gain");
+    assert_eq!(
+        param_key(with(|p| p.range_gain.reference_ns = 0.0)),
+        "range_gain.reference_ns"
+    );
+    assert_eq!(
+        param_key(with(|p| p.range_gain.spreading_exponent = -1.0)),
+        "range_gain.spreading_exponent"
+    );
+    assert_eq!(
+        param_key(with(|p| p.range_gain.attenuation_db_per_ns = 1e6)),
+        "range_gain"
+    );
     let factory = Some(Hardware::new().factory());
-    assert_eq!(param_key(SfcwChain::new(SfcwParams::default(), 10, TONES, F0_HZ, DF_HZ, factory)), "factory");
-    assert_eq!(param_key(SfcwChain::new(SfcwParams::default(), 0, TONES, F0_HZ, DF_HZ, None)), "channel_count");
-    assert_eq!(param_key(SfcwChain::new(SfcwParams::default(), 1, TONES, F0_HZ, 0.0, None)), "frequency_step_hz");
-    assert_eq!(param_key(SfcwChain::new(SfcwParams::default(), 1, 0, F0_HZ, DF_HZ, None)), "bin_count");
+    assert_eq!(
+        param_key(SfcwChain::new(SfcwParams::default(), 10, TONES, F0_HZ, DF_HZ, factory)),
+        "factory"
+    );
+    assert_eq!(
+        param_key(SfcwChain::new(SfcwParams::default(), 0, TONES, F0_HZ, DF_HZ, None)),
+        "channel_count"
+    );
+    assert_eq!(
+        param_key(SfcwChain::new(SfcwParams::default(), 1, TONES, F0_HZ, 0.0, None)),
+        "frequency_step_hz"
+    );
+    assert_eq!(
+        param_key(SfcwChain::new(SfcwParams::default(), 1, 0, F0_HZ, DF_HZ, None)),
+        "bin_count"
+    );
 }
 
 #[test]
@@ -289,19 +407,36 @@ fn a_zero_factory_ratio_is_an_error() {
     let mut values = interleave(hw.gain.iter().copied());
     values[(4 * TONES + 9) * 2] = 0.0;
     values[(4 * TONES + 9) * 2 + 1] = 0.0;
-    let err = FactoryCalibration::new(&values, &interleave(hw.cal_path.iter().copied()), CHANNELS, TONES).unwrap_err();
-    assert!(matches!(err, Error::ZeroDivisor { at: ToneIndex { channel: Some(4), tone: 9 }, .. }), "{err}");
+    let err = FactoryCalibration::new(&values, &interleave(hw.cal_path.iter().copied()), CHANNELS, TONES)
+        .expect_err("must be refused");
+    assert!(
+        matches!(
+            err,
+            Error::ZeroDivisor {
+                at: ToneIndex {
+                    channel: Some(4),
+                    tone: 9
+                },
+                ..
+            }
+        ),
+        "{err}"
+    );
 }
 
 #[test]
 fn params_parse_with_defaults_and_refuse_unknown_keys() {
-    let p: SfcwParams = serde_json::from_str(r#"{"keep_samples": 512, "range_gain": {"reference_ns": 3}}"#).expect("parse");
+    let p: SfcwParams =
+        serde_json::from_str(r#"{"keep_samples": 512, "range_gain": {"reference_ns": 3}}"#).expect("parse");
     assert_eq!(p.keep_samples, 512);
     assert_eq!(p.range_gain.reference_ns, 3.0);
     assert_eq!(p.range_gain.spreading_exponent, 1.0);
     assert_eq!(p.delay_ns, 8.0);
-    assert_eq!(serde_json::from_str::<SfcwParams>("{}").expect("empty"), SfcwParams::default());
-    let err = serde_json::from_str::<SfcwParams>(r#"{"delay": 8}"#).unwrap_err();
+    assert_eq!(
+        serde_json::from_str::<SfcwParams>("{}").expect("empty"),
+        SfcwParams::default()
+    );
+    let err = serde_json::from_str::<SfcwParams>(r#"{"delay": 8}"#).expect_err("must be refused");
     assert!(err.to_string().contains("delay"), "{err}");
     assert!(serde_json::from_str::<SfcwParams>(r#"{"range_gain": {"alpha": 1}}"#).is_err());
 }

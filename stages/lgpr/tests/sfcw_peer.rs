@@ -79,7 +79,9 @@ struct IirVariable {
 }
 
 fn load<T: for<'de> Deserialize<'de>>(name: &str) -> T {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name);
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name);
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
@@ -115,7 +117,11 @@ impl Step {
     }
 
     fn check(&mut self, sweep: usize, error: f64) {
-        assert!(error <= PEER_RTOL, "{} sweep {sweep}: relative error {error:e} > {PEER_RTOL:e}", self.name);
+        assert!(
+            error <= PEER_RTOL,
+            "{} sweep {sweep}: relative error {error:e} > {PEER_RTOL:e}",
+            self.name
+        );
         self.worst = self.worst.max(error);
     }
 }
@@ -142,8 +148,13 @@ fn chain_matches_numpy_step_by_step() {
     )
     .expect("transform");
     let mut high_pass = DistanceHighPass::new(channels * keep, fx.params.iir_distance_m).expect("high-pass");
-    let gain = RangeGain::new(&fx.params.range_gain, fx.params.delay_ns, transform.sample_interval_ns(), keep)
-        .expect("gain");
+    let gain = RangeGain::new(
+        &fx.params.range_gain,
+        fx.params.delay_ns,
+        transform.sample_interval_ns(),
+        keep,
+    )
+    .expect("gain");
     let chain_for = |factory| {
         SfcwChain::new(
             fx.params.clone(),
@@ -158,7 +169,10 @@ fn chain_matches_numpy_step_by_step() {
     let mut chain = chain_for(Some(factory.clone()));
     let mut chain_self_only = chain_for(None);
     assert!((chain.sample_interval_ns() - fx.sample_interval_ns).abs() <= 1e-12 * fx.sample_interval_ns);
-    Step::new("range gain").check(0, relative_error(gain.gains().iter().copied(), fx.range_gain.iter().copied()));
+    Step::new("range gain").check(
+        0,
+        relative_error(gain.gains().iter().copied(), fx.range_gain.iter().copied()),
+    );
 
     let mut steps = [
         "self calibration",
@@ -177,7 +191,10 @@ fn chain_matches_numpy_step_by_step() {
         self_calibrate(&sw.values, &sw.calibration, channels, bins, &mut spectrum).expect("eq. 2");
         steps[0].check(i, relative_error(pairs(&spectrum), sw.self_calibrated.iter().copied()));
         factory.apply(&mut spectrum).expect("eq. 4");
-        steps[1].check(i, relative_error(pairs(&spectrum), sw.factory_calibrated.iter().copied()));
+        steps[1].check(
+            i,
+            relative_error(pairs(&spectrum), sw.factory_calibrated.iter().copied()),
+        );
         for (k, s) in spectrum.iter_mut().enumerate() {
             *s *= weights[k % bins];
         }

@@ -20,7 +20,10 @@ pub(crate) fn check_tones(what: &'static str, data: &[f32], channels: Option<usi
         });
     }
     let bins = bins.max(1);
-    match data.chunks_exact(2).position(|z| !(z[0].is_finite() && z[1].is_finite())) {
+    match data
+        .chunks_exact(2)
+        .position(|z| !(z[0].is_finite() && z[1].is_finite()))
+    {
         None => Ok(()),
         Some(k) => Err(Error::NonFinite {
             what,

@@ -65,10 +65,16 @@ impl InverseTransform {
             return param("bin_count", "a sweep needs at least one tone".into());
         }
         if !(start_frequency_hz.is_finite() && start_frequency_hz >= 0.0) {
-            return param("start_frequency_hz", format!("must be finite and >= 0, got {start_frequency_hz}"));
+            return param(
+                "start_frequency_hz",
+                format!("must be finite and >= 0, got {start_frequency_hz}"),
+            );
         }
         if !(frequency_step_hz.is_finite() && frequency_step_hz > 0.0) {
-            return param("frequency_step_hz", format!("must be finite and > 0, got {frequency_step_hz}"));
+            return param(
+                "frequency_step_hz",
+                format!("must be finite and > 0, got {frequency_step_hz}"),
+            );
         }
         if !(bins..=MAX_TIME_SAMPLES).contains(&time_samples) {
             return param(
@@ -77,7 +83,10 @@ impl InverseTransform {
             );
         }
         if !(1..=time_samples).contains(&keep_samples) {
-            return param("keep_samples", format!("must be in 1..={time_samples}, got {keep_samples}"));
+            return param(
+                "keep_samples",
+                format!("must be in 1..={time_samples}, got {keep_samples}"),
+            );
         }
         let n = time_samples as f64;
         let start_in_steps = start_frequency_hz / frequency_step_hz;
