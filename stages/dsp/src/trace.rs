@@ -121,9 +121,7 @@ pub struct DewowParams {
 
 impl Default for DewowParams {
     fn default() -> Self {
-        Self {
-            window_periods: 1.0,
-        }
+        Self { window_periods: 1.0 }
     }
 }
 
@@ -141,7 +139,7 @@ impl Dewow {
         format.validate()?;
         let samples_per_period = 1e9 / (format.center_frequency_hz * format.sample_interval_ns);
         let raw = params.window_periods * samples_per_period;
-        if !(raw.is_finite() && raw >= 3.0 && raw < 1e9) {
+        if !(3.0..1e9).contains(&raw) {
             return Err(param(
                 "dewow.window_periods",
                 format!(
@@ -296,20 +294,17 @@ impl Default for BandpassParams {
 /// scaled so that the gain at the centre of the passband `(l + u) / 2` is one:
 /// `h /= Σ_k h[k] cos(π m (l + u) / 2)`. Errors unless `taps` is odd and >= 3 and
 /// `0 < low < high < fs/2`.
-pub fn firwin_bandpass(
-    taps: usize,
-    low_hz: f64,
-    high_hz: f64,
-    sampling_frequency_hz: f64,
-) -> Result<Vec<f64>> {
-    if taps < 3 || taps % 2 == 0 {
+pub fn firwin_bandpass(taps: usize, low_hz: f64, high_hz: f64, sampling_frequency_hz: f64) -> Result<Vec<f64>> {
+    if taps < 3 || taps.is_multiple_of(2) {
         return Err(param("bandpass.taps", format!("must be odd and >= 3, got {taps}")));
     }
     let nyquist_hz = 0.5 * sampling_frequency_hz;
     if !(low_hz > 0.0 && low_hz < high_hz && high_hz < nyquist_hz) {
         return Err(param(
             "bandpass",
-            format!("cut-offs must satisfy 0 < low < high < {nyquist_hz} Hz (Nyquist), got low {low_hz} Hz, high {high_hz} Hz"),
+            format!(
+                "cut-offs must satisfy 0 < low < high < {nyquist_hz} Hz (Nyquist), got low {low_hz} Hz, high {high_hz} Hz"
+            ),
         ));
     }
     let (l, u) = (low_hz / nyquist_hz, high_hz / nyquist_hz);
@@ -383,9 +378,7 @@ impl Bandpass {
                 (0..n_taps)
                     .filter_map(|i| {
                         let j = i as isize + lag;
-                        (0..n_taps as isize)
-                            .contains(&j)
-                            .then(|| taps[i] * taps[j as usize])
+                        (0..n_taps as isize).contains(&j).then(|| taps[i] * taps[j as usize])
                     })
                     .sum::<f64>() as f32
             })
@@ -492,9 +485,7 @@ impl SecGain {
             return Err(param("sec_gain.a", format!("must be finite, got {}", params.a)));
         }
         let g = |k: usize| (params.a * k as f64).exp() * (k as f64).powf(params.b);
-        let gain: Vec<f32> = (0..samples)
-            .map(|k| g(k.min(params.threshold)) as f32)
-            .collect();
+        let gain: Vec<f32> = (0..samples).map(|k| g(k.min(params.threshold)) as f32).collect();
         if let Some(k) = gain.iter().position(|v| !v.is_finite()) {
             return Err(param(
                 "sec_gain.a",
@@ -560,10 +551,7 @@ impl Stacker {
     /// Adds a trace; returns the mean of the last `N` traces when this one completes them.
     pub fn push(&mut self, trace: &[f32]) -> Result<Option<&[f32]>> {
         check_len("stacked trace", self.sum.len(), trace.len())?;
-        self.sum
-            .iter_mut()
-            .zip(trace)
-            .for_each(|(s, &x)| *s += f64::from(x));
+        self.sum.iter_mut().zip(trace).for_each(|(s, &x)| *s += f64::from(x));
         self.count += 1;
         if self.count < self.traces {
             return Ok(None);
@@ -580,12 +568,10 @@ impl Stacker {
 
 fn finish_mean(sum: &mut [f64], count: &mut usize, mean: &mut [f32]) {
     let inv = 1.0 / *count as f64;
-    mean.iter_mut()
-        .zip(sum.iter_mut())
-        .for_each(|(m, s)| {
-            *m = (*s * inv) as f32;
-            *s = 0.0;
-        });
+    mean.iter_mut().zip(sum.iter_mut()).for_each(|(m, s)| {
+        *m = (*s * inv) as f32;
+        *s = 0.0;
+    });
     *count = 0;
 }
 
@@ -670,10 +656,7 @@ impl DistanceStacker {
         self.bin = bin;
         self.count += 1;
         self.distance_sum_m += distance_m;
-        self.sum
-            .iter_mut()
-            .zip(trace)
-            .for_each(|(s, &x)| *s += f64::from(x));
+        self.sum.iter_mut().zip(trace).for_each(|(s, &x)| *s += f64::from(x));
         Ok(finished.map(|(bin, traces, distance_m)| DistanceStack {
             bin,
             trace: &self.mean,
@@ -687,8 +670,7 @@ impl DistanceStacker {
         if self.count == 0 {
             return None;
         }
-        let (bin, traces, distance_m) =
-            (self.bin, self.count, self.distance_sum_m / self.count as f64);
+        let (bin, traces, distance_m) = (self.bin, self.count, self.distance_sum_m / self.count as f64);
         finish_mean(&mut self.sum, &mut self.count, &mut self.mean);
         self.distance_sum_m = 0.0;
         Some(DistanceStack {
@@ -772,9 +754,7 @@ mod tests {
         let f = TraceFormat::new(201, 0.2, 500e6);
         let d = Dewow::new(&DewowParams::default(), &f).expect("valid");
         assert_eq!(d.window_samples(), 11);
-        let short = DewowParams {
-            window_periods: 0.1,
-        };
+        let short = DewowParams { window_periods: 0.1 };
         assert!(Dewow::new(&short, &f).is_err());
     }
 
