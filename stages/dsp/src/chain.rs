@@ -4,8 +4,8 @@
 use serde::Deserialize;
 
 use crate::trace::{
-    Bandpass, BandpassParams, Dewow, DewowParams, SecGain, SecGainParams, StackParams, Stacker,
-    TraceFormat, ZeroTimeParams, shift_to_zero_time, zero_time_index,
+    Bandpass, BandpassParams, Dewow, DewowParams, SecGain, SecGainParams, StackParams, Stacker, TraceFormat,
+    ZeroTimeParams, shift_to_zero_time, zero_time_index,
 };
 use crate::{Error, Result};
 
@@ -80,27 +80,15 @@ impl TraceChain {
         }
         Ok(Self {
             format,
-            stacker: params
-                .stack
-                .as_ref()
-                .map(|p| Stacker::new(p, samples))
-                .transpose()?,
-            dewow: params
-                .dewow
-                .as_ref()
-                .map(|p| Dewow::new(p, &format))
-                .transpose()?,
+            stacker: params.stack.as_ref().map(|p| Stacker::new(p, samples)).transpose()?,
+            dewow: params.dewow.as_ref().map(|p| Dewow::new(p, &format)).transpose()?,
             zero_time: params.zero_time.clone(),
             bandpass: params
                 .bandpass
                 .as_ref()
                 .map(|p| Bandpass::new(p, &format))
                 .transpose()?,
-            sec_gain: params
-                .sec_gain
-                .as_ref()
-                .map(|p| SecGain::new(p, samples))
-                .transpose()?,
+            sec_gain: params.sec_gain.as_ref().map(|p| SecGain::new(p, samples)).transpose()?,
             stacked: vec![0.0; samples],
         })
     }
@@ -140,10 +128,7 @@ impl TraceChain {
         if let Some(dewow) = &mut self.dewow {
             dewow.apply(trace)?;
         }
-        let shift = self
-            .zero_time
-            .as_ref()
-            .and_then(|p| zero_time_index(trace, p));
+        let shift = self.zero_time.as_ref().and_then(|p| zero_time_index(trace, p));
         if let Some(k0) = shift {
             shift_to_zero_time(trace, k0);
         }
@@ -211,8 +196,7 @@ mod tests {
     #[test]
     fn params_parse_with_defaults_and_null_disables() {
         let p: ChainParams =
-            serde_json::from_str(r#"{"dewow": null, "bandpass": {"taps": 21}, "stack": {}}"#)
-                .expect("parses");
+            serde_json::from_str(r#"{"dewow": null, "bandpass": {"taps": 21}, "stack": {}}"#).expect("parses");
         assert_eq!(p.dewow, None);
         assert_eq!(p.bandpass.as_ref().map(|b| b.taps), Some(21));
         assert_eq!(p.stack, Some(StackParams::default()));

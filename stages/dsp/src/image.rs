@@ -210,8 +210,7 @@ impl Plane {
         }
         let mut out = Self::zeros(rows, cols);
         for r in 0..rows {
-            out.data[r * cols..(r + 1) * cols]
-                .copy_from_slice(&self.data[r * self.cols..r * self.cols + cols]);
+            out.data[r * cols..(r + 1) * cols].copy_from_slice(&self.data[r * self.cols..r * self.cols + cols]);
         }
         out
     }
@@ -445,11 +444,7 @@ pub fn denoise_wavelet(
 /// Median of `|v|` over the non-zero values (mean of the two middle ones for an even count),
 /// 0 when all are zero.
 fn median_abs_nonzero(values: &[f64]) -> f64 {
-    let mut mags: Vec<f64> = values
-        .iter()
-        .filter(|v| **v != 0.0)
-        .map(|v| v.abs())
-        .collect();
+    let mut mags: Vec<f64> = values.iter().filter(|v| **v != 0.0).map(|v| v.abs()).collect();
     if mags.is_empty() {
         return 0.0;
     }
@@ -561,13 +556,7 @@ mod tests {
     use super::*;
 
     const RECONSTRUCTION: f64 = 1e-12;
-    const ALL: [Wavelet; 5] = [
-        Wavelet::Haar,
-        Wavelet::Db1,
-        Wavelet::Db2,
-        Wavelet::Db3,
-        Wavelet::Db4,
-    ];
+    const ALL: [Wavelet; 5] = [Wavelet::Haar, Wavelet::Db1, Wavelet::Db2, Wavelet::Db3, Wavelet::Db4];
 
     fn plane(rows: usize, cols: usize) -> Plane {
         let data = (0..rows * cols)
@@ -600,9 +589,7 @@ mod tests {
             let b = wavelet.filter_bank();
             let l = b.rec_lo.len();
             for shift in (0..l).step_by(2) {
-                let dot = |p: &[f64], q: &[f64]| -> f64 {
-                    (0..l - shift).map(|k| p[k] * q[k + shift]).sum()
-                };
+                let dot = |p: &[f64], q: &[f64]| -> f64 { (0..l - shift).map(|k| p[k] * q[k + shift]).sum() };
                 let want = if shift == 0 { 1.0 } else { 0.0 };
                 assert!((dot(&b.rec_lo, &b.rec_lo) - want).abs() < RECONSTRUCTION);
                 assert!(dot(&b.rec_lo, &b.rec_hi).abs() < RECONSTRUCTION);

@@ -43,10 +43,7 @@ impl BackgroundModel {
     pub fn add_trace(&mut self, trace: &[f32]) -> Result<()> {
         check_len("background trace", self.sum.len(), trace.len())?;
         check_finite("background trace", trace)?;
-        self.sum
-            .iter_mut()
-            .zip(trace)
-            .for_each(|(s, &x)| *s += f64::from(x));
+        self.sum.iter_mut().zip(trace).for_each(|(s, &x)| *s += f64::from(x));
         self.traces += 1;
         let inv = 1.0 / self.traces as f64;
         self.mean

@@ -6,12 +6,10 @@
 use std::path::PathBuf;
 
 use gprflow_dsp::chain::{ChainParams, TraceChain};
-use gprflow_dsp::image::{
-    GaussianParams, Shape, Wavelet, WaveletDenoiseParams, denoise_wavelet, gaussian_smooth,
-};
+use gprflow_dsp::image::{GaussianParams, Shape, Wavelet, WaveletDenoiseParams, denoise_wavelet, gaussian_smooth};
 use gprflow_dsp::trace::{
-    Bandpass, BandpassParams, Dewow, DewowParams, SecGain, SecGainParams, TraceFormat,
-    ZeroTimeParams, firwin_bandpass, shift_to_zero_time, zero_time_index,
+    Bandpass, BandpassParams, Dewow, DewowParams, SecGain, SecGainParams, TraceFormat, ZeroTimeParams, firwin_bandpass,
+    shift_to_zero_time, zero_time_index,
 };
 use serde_json::Value;
 
@@ -23,7 +21,9 @@ const F64_RTOL: f64 = 1e-12;
 const F32_REPR_RTOL: f64 = f32::EPSILON as f64;
 
 fn fixture(name: &str) -> Value {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name);
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name);
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path:?}: {e}"));
     serde_json::from_str(&text).unwrap_or_else(|e| panic!("{path:?}: {e}"))
 }
@@ -184,8 +184,7 @@ fn chain_matches_the_scipy_chain() {
     let params: ChainParams = serde_json::from_value(case["params"].clone()).expect("params");
     assert_eq!(params, ChainParams::default(), "the fixture uses the defaults");
     let f = t.format;
-    let mut chain = TraceChain::new(&params, f.samples, f.sample_interval_ns, f.center_frequency_hz)
-        .expect("valid");
+    let mut chain = TraceChain::new(&params, f.samples, f.sample_interval_ns, f.center_frequency_hz).expect("valid");
     let want: Vec<i64> = case["zero_time_index"]
         .as_array()
         .expect("indices")
@@ -233,10 +232,7 @@ fn wavelet_denoising_matches_skimage() {
     for case in fx["cases"].as_array().expect("cases") {
         let name = case["wavelet"].as_str().expect("name");
         let wavelet: Wavelet = serde_json::from_value(case["wavelet"].clone()).expect("wavelet");
-        let params = WaveletDenoiseParams {
-            wavelet,
-            levels: None,
-        };
+        let params = WaveletDenoiseParams { wavelet, levels: None };
         let mut ours = img.values.clone();
         let summary = denoise_wavelet(&mut ours, img.shape, &params).expect("valid");
         assert_eq!(summary.levels, count(&case["levels"]), "{name} levels");
