@@ -108,7 +108,7 @@ pub(crate) fn reflect_index(i: isize, n: usize) -> usize {
 // Dewow
 
 /// Dewow: DC subtraction and a low-cut tied to the centre frequency (Jol 2009, the thesis's
-/// reference [55]: a running mean over about one period of the centre frequency).
+/// reference \[55\]: a running mean over about one period of the centre frequency).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct DewowParams {
