@@ -131,7 +131,12 @@ pub struct ReplayStage {
     speed: f64,
     started: Instant,
     last_progress: Instant,
+    /// Stamp last promised on every output.
+    promised_ns: i64,
 }
+
+/// How far a source's stamps advance before it promises them on every output (sensor time).
+pub const PROMISE_EVERY_NS: i64 = 5_000_000;
 
 impl Stage for ReplayStage {
     type Params = ReplayParams;
@@ -172,6 +177,7 @@ impl Stage for ReplayStage {
             speed: params.speed,
             started: Instant::now(),
             last_progress: Instant::now(),
+            promised_ns: i64::MIN,
         })
     }
 
@@ -189,6 +195,11 @@ impl Stage for ReplayStage {
             }
         }
         out.send_bytes(*index, *stamp, data)?;
+        // messages are in stamp order: the other topics will not go back before this one
+        if *stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
+            out.promise(*stamp)?;
+            self.promised_ns = *stamp;
+        }
         self.next += 1;
         if self.last_progress.elapsed() > Duration::from_millis(200) {
             self.last_progress = Instant::now();

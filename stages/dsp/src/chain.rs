@@ -13,6 +13,7 @@ use crate::{Error, Result};
 /// a step given as `{}` takes its defaults. Default: no stacking, all four filters on with
 /// their defaults.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct ChainParams {
     /// Averaging of consecutive raw traces before the filters (default `None`: off).

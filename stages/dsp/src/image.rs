@@ -61,6 +61,7 @@ pub(crate) fn check_finite(what: &str, values: &[f32]) -> Result<()> {
 
 /// An orthogonal Daubechies wavelet (`haar` is `db1`).
 #[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(rename_all = "lowercase")]
 pub enum Wavelet {
     /// Haar, the same as `db1`.
@@ -349,6 +350,7 @@ const NORMAL_Q75: f64 = 0.674_489_750_196_081_7;
 
 /// Wavelet denoising with BayesShrink thresholds and soft thresholding.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct WaveletDenoiseParams {
     /// Wavelet (`haar`, `db1`..`db4`; default `db1`, scikit-image's default).
@@ -462,6 +464,7 @@ fn median_abs_nonzero(values: &[f64]) -> f64 {
 
 /// Gaussian smoothing along track (and optionally along depth).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct GaussianParams {
     /// Standard deviation along track (axis 1, across traces), pixels (> 0; default 1.0).
@@ -549,6 +552,21 @@ pub fn gaussian_smooth(image: &mut [f32], shape: Shape, params: &GaussianParams)
         }
     }
     Ok(())
+}
+
+/// Saliency of a `rows x cols` row-major image (seed 000 §4.4): the standard deviation of
+/// each row across the columns, average-pooled over the rows. Flat images (no along-track structure) score 0.
+pub fn saliency(pixels: &[f32], rows: usize, cols: usize) -> f32 {
+    if rows == 0 || cols == 0 {
+        return 0.0;
+    }
+    let mut total = 0.0f64;
+    for row in pixels.chunks_exact(cols).take(rows) {
+        let mean = row.iter().map(|&v| f64::from(v)).sum::<f64>() / cols as f64;
+        let var = row.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / cols as f64;
+        total += var.sqrt();
+    }
+    (total / rows as f64) as f32
 }
 
 #[cfg(test)]

@@ -110,6 +110,7 @@ pub(crate) fn reflect_index(i: isize, n: usize) -> usize {
 /// Dewow: DC subtraction and a low-cut tied to the centre frequency (Jol 2009, the thesis's
 /// reference \[55\]: a running mean over about one period of the centre frequency).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct DewowParams {
     /// Length of the running-mean window in periods of the centre frequency (dimensionless;
@@ -195,6 +196,7 @@ impl Dewow {
 
 /// Zero-time correction: the zero time of a trace is its first negative peak (§3.2.2).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct ZeroTimeParams {
     /// A negative peak counts when it is below `-threshold · max|x|` (fraction of the trace's
@@ -262,6 +264,7 @@ pub fn shift_to_zero_time(trace: &mut [f32], index: usize) {
 
 /// FIR band-pass with a triangular window, applied forward and backward (zero phase).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct BandpassParams {
     /// Number of taps, odd, >= 3 (default 31: 6.2 ns at 0.2 ns, about three periods of a
@@ -464,6 +467,7 @@ fn convolve_valid_portable(kernel: &[f32], input: &[f32], out: &mut [f32]) {
 /// a=0.06 b=0.5 threshold=80; NREC a=0.03 b=0 threshold=110; Gates garage a=0.03 b=0.7
 /// threshold=80 (the default).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct SecGainParams {
     /// Exponential gain constant `a`, per sample (default 0.03).
@@ -533,6 +537,7 @@ impl SecGain {
 
 /// Stacking: the mean of `traces` consecutive traces.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct StackParams {
     /// Traces per stack, >= 1 (default 1: pass through).
@@ -597,6 +602,7 @@ fn finish_mean(sum: &mut [f64], count: &mut usize, mean: &mut [f32]) {
 
 /// Stacking by distance along track: the mean of the traces that fall in the same bin.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct DistanceStackParams {
     /// Bin width along track, m (> 0; default 0.015 m, the thesis's submap pixel).

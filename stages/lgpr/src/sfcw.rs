@@ -43,12 +43,15 @@ pub use self::calibration::{FactoryCalibration, self_calibrate};
 pub use self::high_pass::DistanceHighPass;
 pub use self::range_gain::{RangeGain, RangeGainParams};
 pub use self::transform::{InverseTransform, MAX_TIME_SAMPLES};
-pub use self::window::{MAX_WINDOW_ATTENUATION_DB, chebyshev_window};
+pub use self::window::{MAX_WINDOW_ATTENUATION_DB, MAX_WINDOW_LEN, chebyshev_window};
 use crate::error::{Error, Result};
 
 /// Smallest magnitude divided by (a calibration tone, a factory ratio of eq. 3); below it the
 /// division is an error rather than a huge or non-finite result.
 pub const MIN_DIVISOR_MAGNITUDE: f64 = 1e-12;
+
+/// Most channels per sweep accepted by [`SfcwChain::new`].
+pub const MAX_CHANNELS: usize = 1024;
 
 /// Parameters of the SFCW chain, parsed once at start-up.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -145,7 +148,8 @@ impl SfcwChain {
     /// in steps of `frequency_step_hz`, with the factory calibration if there is one (without,
     /// eq. 4 is skipped: the output is relative to the calibration channel only).
     ///
-    /// Errors (`Param`, naming the key): any parameter out of range, `channels == 0`, a
+    /// Errors (`Param`, naming the key): any parameter out of range, `channels` not in
+    /// `1..=MAX_CHANNELS`, more tones than [`MAX_WINDOW_LEN`], a
     /// factory calibration of another shape (`factory`).
     pub fn new(
         params: SfcwParams,
@@ -155,10 +159,10 @@ impl SfcwChain {
         frequency_step_hz: f64,
         factory: Option<FactoryCalibration>,
     ) -> Result<Self> {
-        if channels == 0 {
+        if !(1..=MAX_CHANNELS).contains(&channels) {
             return Err(Error::Param {
                 key: "channel_count",
-                message: "a sweep needs at least one channel".into(),
+                message: format!("a sweep needs 1..={MAX_CHANNELS} channels, got {channels}"),
             });
         }
         let transform = InverseTransform::new(

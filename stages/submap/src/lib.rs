@@ -30,6 +30,7 @@ mod builder;
 mod odometry;
 
 pub use builder::{Submap, SubmapBuilder, SubmapStats};
+pub use gprflow_dsp::image::saliency;
 pub use odometry::{PlanarOdometry, PlanarPose};
 
 /// What can go wrong in this crate.
@@ -173,21 +174,6 @@ pub fn rubber_band(pixels: &mut [f32], rows: usize, cols: usize, filled: &[bool]
         }
     }
     true
-}
-
-/// Saliency of a `rows x cols` row-major image: the standard deviation of each row across
-/// the columns, average-pooled over the rows. Flat images (no along-track structure) score 0.
-pub fn saliency(pixels: &[f32], rows: usize, cols: usize) -> f32 {
-    if rows == 0 || cols == 0 {
-        return 0.0;
-    }
-    let mut total = 0.0f64;
-    for row in pixels.chunks_exact(cols).take(rows) {
-        let mean = row.iter().map(|&v| f64::from(v)).sum::<f64>() / cols as f64;
-        let var = row.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / cols as f64;
-        total += var.sqrt();
-    }
-    (total / rows as f64) as f32
 }
 
 #[cfg(test)]

@@ -9,7 +9,9 @@ pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
+use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
+use gprflow_ingest::node::IngestStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
 
@@ -20,6 +22,9 @@ pub fn catalog() -> StageCatalog {
         .with(describe::<ToyGain>())
         .with(describe::<EstimateStage>())
         .with(describe::<SubmapStage>())
+        .with(describe::<IngestStage>())
+        .with(describe::<DspStage>())
+        .with(describe::<DspSubmapStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -46,6 +51,9 @@ pub fn run_stage(
         ToyGain::NAME => run::<ToyGain>(spec, &transport, stop),
         EstimateStage::NAME => run::<EstimateStage>(spec, &transport, stop),
         SubmapStage::NAME => run::<SubmapStage>(spec, &transport, stop),
+        IngestStage::NAME => run::<IngestStage>(spec, &transport, stop),
+        DspStage::NAME => run::<DspStage>(spec, &transport, stop),
+        DspSubmapStage::NAME => run::<DspSubmapStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(

@@ -110,8 +110,9 @@ impl FactoryCalibration {
     /// Errors: wrong lengths, a non-finite tone, a calibration tone or a resulting ratio with
     /// magnitude below [`MIN_DIVISOR_MAGNITUDE`] (eq. 4 divides by it).
     pub fn new(values: &[f32], calibration: &[f32], channels: usize, bins: usize) -> Result<Self> {
-        let mut ratio = vec![Complex64::default(); channels.saturating_mul(bins)];
+        // the lengths first: they bound what is allocated
         check_tones("factory values", values, Some(channels), bins)?;
+        let mut ratio = vec![Complex64::default(); channels * bins];
         let mut inverse = vec![Complex64::default(); bins];
         inverse_calibration("factory calibration", calibration, &mut inverse)?;
         for (k, r) in ratio.iter_mut().enumerate() {

@@ -9,6 +9,9 @@ use crate::error::{Error, Result};
 /// for the Chebyshev polynomial of long windows).
 pub const MAX_WINDOW_ATTENUATION_DB: f64 = 300.0;
 
+/// Longest window computed (its cost grows as the square of the length).
+pub const MAX_WINDOW_LEN: usize = 4096;
+
 /// Chebyshev polynomial of the first kind, `T_n(x)`, for any real `x`:
 /// `cos(n acos x)` on `|x| <= 1`, `sign(x)^n cosh(n acosh |x|)` outside.
 fn chebyshev_polynomial(order: f64, parity_odd: bool, x: f64) -> f64 {
@@ -31,8 +34,8 @@ fn chebyshev_polynomial(order: f64, parity_odd: bool, x: f64) -> f64 {
 /// (for even `len` the centre `n/2` falls between two taps: the half-sample shift).
 /// Costs `O(len^2)`, once at start-up.
 ///
-/// Errors: `len == 0`, or `attenuation_db` not in `(0, MAX_WINDOW_ATTENUATION_DB]`
-/// (key `window_attenuation_db`).
+/// Errors: `len` not in `1..=MAX_WINDOW_LEN` (key `bin_count`), or `attenuation_db` not in
+/// `(0, MAX_WINDOW_ATTENUATION_DB]` (key `window_attenuation_db`).
 pub fn chebyshev_window(len: usize, attenuation_db: f64) -> Result<Vec<f64>> {
     if !(attenuation_db > 0.0 && attenuation_db <= MAX_WINDOW_ATTENUATION_DB) {
         return Err(Error::Param {
@@ -40,11 +43,13 @@ pub fn chebyshev_window(len: usize, attenuation_db: f64) -> Result<Vec<f64>> {
             message: format!("must be in (0, {MAX_WINDOW_ATTENUATION_DB}] dB, got {attenuation_db}"),
         });
     }
+    if !(1..=MAX_WINDOW_LEN).contains(&len) {
+        return Err(Error::Param {
+            key: "bin_count",
+            message: format!("the window over the tones needs 1..={MAX_WINDOW_LEN} taps, got {len}"),
+        });
+    }
     match len {
-        0 => Err(Error::Param {
-            key: "window",
-            message: "a window needs at least one tap".into(),
-        }),
         1 => Ok(vec![1.0]),
         _ => {
             let size = len as f64;
