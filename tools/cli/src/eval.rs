@@ -541,33 +541,98 @@ fn print_diff(
 ///
 /// # Errors
 /// Unreadable recording, no traces on the topic, unwritable output.
-pub fn radargram_command(input: &Path, topic: &str, from_s: f64, to_s: Option<f64>, output: &Path) -> Result<ExitCode> {
-    use gprflow::msg::{Samples, Trace};
-    let rec = Recording::open(input)?;
-    let topic = topic_name(topic);
+pub fn radargram_command(
+    input: &Path,
+    topic: &str,
+    (from_s, to_s): (f64, Option<f64>),
+    submap: Option<u32>,
+    output: &Path,
+) -> Result<ExitCode> {
+    use gprflow::msg::{Message, Samples, Submap, Trace};
+    let as_columns = |trace: &Trace<'_>| -> Vec<f32> {
+        match trace.samples() {
+            Samples::I16(s) => s.iter().map(|&v| f32::from(v)).collect(),
+            Samples::I32(s) => s.iter().map(|&v| v as f32).collect(),
+            Samples::F32(s) => s.to_vec(),
+        }
+    };
+    let is_recording = input.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
     let mut traces = Vec::new();
-    let mut first: Option<u64> = None;
-    let mut failure = None;
-    rec.scan(|m| {
-        if m.topic != topic || failure.is_some() {
-            return;
+    let topic = topic_name(topic);
+    let mut what = topic.clone();
+    if !is_recording {
+        // a radar file: its traces, as the ingest stage reads them
+        let params = crate::convert::ingest_params(input, gprflow_ingest::node::SourceFormat::Auto);
+        let loaded =
+            gprflow_ingest::node::load(&params).with_context(|| format!("{}: cannot read", input.display()))?;
+        let first = loaded.messages.first().map_or(0, |m| m.1);
+        for (port, stamp, data) in &loaded.messages {
+            let t = (stamp - first) as f64 * 1e-9;
+            if *port != gprflow_ingest::node::Port::Gpr || t < from_s || to_s.is_some_and(|end| t > end) {
+                continue;
+            }
+            let trace: Trace = gprflow::msg::decode(data)?;
+            traces.push(as_columns(&trace));
         }
-        let t0 = *first.get_or_insert(m.log_time);
-        let t = (m.log_time - t0) as f64 * 1e-9;
-        if t < from_s || to_s.is_some_and(|end| t > end) {
-            return;
+        what = "traces".into();
+    } else {
+        let rec = Recording::open(input)?;
+        let ty = rec.topics().into_iter().find(|(t, _)| *t == topic).map(|(_, ty)| ty);
+        let mut first: Option<u64> = None;
+        let mut failure = None;
+        let mut best: Option<(f32, u32, Vec<Vec<f32>>)> = None;
+        let is_submap = ty.as_deref() == Some(Submap::TYPE_NAME);
+        rec.scan(|m| {
+            if m.topic != topic || failure.is_some() {
+                return;
+            }
+            if is_submap {
+                match gprflow::msg::decode::<Submap>(m.data) {
+                    Ok(s) => {
+                        let wanted = match submap {
+                            Some(id) => s.id == id,
+                            None => best.as_ref().is_none_or(|b| s.saliency > b.0),
+                        };
+                        if wanted {
+                            let (rows, cols) = (s.rows as usize, s.cols as usize);
+                            let columns = (0..cols)
+                                .map(|c| {
+                                    (0..rows)
+                                        .map(|r| s.pixels.get(r * cols + c).copied().unwrap_or(0.0))
+                                        .collect()
+                                })
+                                .collect();
+                            best = Some((s.saliency, s.id, columns));
+                        }
+                    }
+                    Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
+                }
+                return;
+            }
+            let t0 = *first.get_or_insert(m.log_time);
+            let t = (m.log_time - t0) as f64 * 1e-9;
+            if t < from_s || to_s.is_some_and(|end| t > end) {
+                return;
+            }
+            match gprflow::msg::decode::<Trace>(m.data) {
+                Ok(trace) => traces.push(as_columns(&trace)),
+                Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
+            }
+        });
+        if let Some(f) = failure {
+            bail!(f);
         }
-        match gprflow::msg::decode::<Trace>(m.data) {
-            Ok(trace) => traces.push(match trace.samples() {
-                Samples::I16(s) => s.iter().map(|&v| f32::from(v)).collect(),
-                Samples::I32(s) => s.iter().map(|&v| v as f32).collect(),
-                Samples::F32(s) => s.to_vec(),
-            }),
-            Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
+        if is_submap {
+            let Some((saliency, id, columns)) = best else {
+                bail!(
+                    "{}: no submap{} on {topic}",
+                    input.display(),
+                    submap.map(|i| format!(" with id {i}")).unwrap_or_default()
+                );
+            };
+            traces = columns;
+            what = format!("submap {id} (saliency {saliency:.3}) of {topic}");
         }
-    });
-    if let Some(f) = failure {
-        bail!(f);
     }
     if traces.is_empty() {
         bail!("{}: no traces on {topic} in that time window", input.display());
@@ -575,7 +640,7 @@ pub fn radargram_command(input: &Path, topic: &str, from_s: f64, to_s: Option<f6
     crate::plot::radargram(output, &traces)?;
     writeln!(
         std::io::stdout().lock(),
-        "{} traces of {topic} drawn to {}",
+        "{} columns of {what} drawn to {}",
         traces.len(),
         output.display()
     )?;

@@ -3,6 +3,7 @@
 
 pub mod bench_estimate;
 pub mod commands;
+pub mod convert;
 pub mod eval;
 pub mod plot;
 pub mod sim;

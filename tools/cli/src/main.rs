@@ -16,6 +16,34 @@ struct Cli {
     log: String,
 }
 
+/// Input formats of `gprflow convert --to mcap`.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum InputFormat {
+    /// From the path: a folder is a CMU-GPR sequence, else by extension.
+    Auto,
+    /// An MCAP recording.
+    Mcap,
+    /// A CMU-GPR sequence folder.
+    CmuGpr,
+    /// GSSI SIR .DZT.
+    Dzt,
+    /// Sensors & Software .DT1 with its .HD.
+    Dt1,
+}
+
+impl From<InputFormat> for gprflow_ingest::node::SourceFormat {
+    fn from(f: InputFormat) -> Self {
+        use gprflow_ingest::node::SourceFormat as S;
+        match f {
+            InputFormat::Auto => S::Auto,
+            InputFormat::Mcap => S::Mcap,
+            InputFormat::CmuGpr => S::CmuGpr,
+            InputFormat::Dzt => S::Dzt,
+            InputFormat::Dt1 => S::Dt1,
+        }
+    }
+}
+
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run a graph: one process per node, optionally recorded.
@@ -137,29 +165,41 @@ enum Command {
         #[arg(long, value_name = "TOPIC")]
         also: Vec<String>,
     },
-    /// Convert a recording's trajectory to a TUM file.
+    /// Convert a radar file to a recording, or a recording's trajectory to a TUM file.
     ///
-    /// Example: gprflow convert run.mcap --to tum --topic /truth/pose -o truth.txt
+    /// Examples:
+    ///   gprflow convert GSSI_FILE____032.DZT --to mcap -o line.mcap
+    ///   gprflow convert path/to/cmu-gpr-sequence/ --to mcap -o seq.mcap
+    ///   gprflow convert run.mcap --to tum --topic /truth/pose -o truth.txt
     Convert {
-        /// Input recording.
+        /// Input: a CMU-GPR sequence folder, a .DZT, a .DT1 (with its .HD) or a recording.
         input: PathBuf,
-        /// Output format (`tum`).
-        #[arg(long, value_parser = ["tum"])]
+        /// Output format: `mcap` (radar files) or `tum` (a recording's trajectory).
+        #[arg(long, value_parser = ["mcap", "tum"])]
         to: String,
-        /// Pose topic to convert (default: the run's estimate).
+        /// Input format for `--to mcap` (default: from the path).
+        #[arg(long, value_enum, default_value = "auto")]
+        format: InputFormat,
+        /// Pose topic to convert to TUM (default: the run's estimate).
         #[arg(long)]
         topic: Option<String>,
         /// Output file.
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Draw a recording's traces as a radargram (PNG, one column per trace).
+    /// Draw traces as a radargram (PNG, one column per trace), or one submap.
     ///
-    /// Example: gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
+    /// Examples:
+    ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
+    ///   gprflow radargram ../shared/data/real-gpr/GSSI_FILE____032.DZT -o dzt.png
+    ///   gprflow radargram run.mcap --topic /filter/submap --submap 120 -o submap.png
     Radargram {
-        /// Recording.
+        /// Recording, or a radar file (CMU-GPR folder, .DZT, .DT1).
         input: PathBuf,
-        /// Trace topic.
+        /// Submap topic only: the id of the submap to draw (default: the most salient).
+        #[arg(long)]
+        submap: Option<u32>,
+        /// Trace or submap topic (recordings only).
         #[arg(long, default_value = "/gpr/trace")]
         topic: String,
         /// Start, seconds after the first trace.
@@ -293,17 +333,22 @@ fn main() -> ExitCode {
         }),
         Command::Convert {
             input,
-            to: _,
+            to,
+            format,
             topic,
             output,
-        } => gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output),
+        } => match to.as_str() {
+            "mcap" => gprflow_cli::convert::convert_to_mcap(&input, format.into(), &output),
+            _ => gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output),
+        },
         Command::Radargram {
             input,
+            submap,
             topic,
             from,
             to,
             output,
-        } => gprflow_cli::eval::radargram_command(&input, &topic, from, to, &output),
+        } => gprflow_cli::eval::radargram_command(&input, &topic, (from, to), submap, &output),
         Command::Diff {
             a,
             b,
