@@ -399,6 +399,24 @@ fn bad_parameters_are_errors_that_name_the_key() {
         param_key(SfcwChain::new(SfcwParams::default(), 1, 0, F0_HZ, DF_HZ, None)),
         "bin_count"
     );
+    assert_eq!(
+        param_key(SfcwChain::new(SfcwParams::default(), 2000, TONES, F0_HZ, DF_HZ, None)),
+        "channel_count"
+    );
+    assert_eq!(
+        param_key(SfcwChain::new(
+            SfcwParams {
+                time_samples: 8192,
+                ..SfcwParams::default()
+            },
+            1,
+            5000,
+            F0_HZ,
+            DF_HZ,
+            None
+        )),
+        "bin_count"
+    );
 }
 
 #[test]
