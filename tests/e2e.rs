@@ -996,12 +996,7 @@ fn submap_pipeline_resamples_a_simulated_run_by_wheel_distance() {
     use gprflow::msg::Submap;
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("submaps.mcap");
-    let o = gprflow(&[
-        "launch",
-        "graphs/submaps.yaml",
-        "--record",
-        rec.to_str().expect("utf8"),
-    ]);
+    let o = gprflow(&["launch", "graphs/submaps.yaml", "--record", rec.to_str().expect("utf8")]);
     assert!(o.status.success(), "{}", stderr(&o));
     let p = payloads(&rec);
     let raw: Vec<Submap> = decode_all(&p["/submap/submap"]);
@@ -1015,7 +1010,11 @@ fn submap_pipeline_resamples_a_simulated_run_by_wheel_distance() {
         assert_eq!((r.rows, r.cols, r.id), (f.rows, f.cols, f.id));
         assert_eq!((r.rows, r.cols), (201, 200));
         assert!((r.resolution_m - 0.015).abs() < 1e-12);
-        assert!((r.end_distance_m - r.start_distance_m - 199.0 * 0.015).abs() < 1e-6, "{}", r.id);
+        assert!(
+            (r.end_distance_m - r.start_distance_m - 199.0 * 0.015).abs() < 1e-6,
+            "{}",
+            r.id
+        );
         assert!(r.header.stamp.to_ns() > r.start_stamp.to_ns());
         assert!(f.pixels.iter().all(|v| v.is_finite()));
         assert!(f.saliency.is_finite() && f.saliency > 0.0);
@@ -1133,7 +1132,11 @@ fn real_radar_files_convert_and_the_python_reader_agrees() {
         let t: Vec<Trace> = decode_all(&p["/gpr/trace"]);
         assert_eq!(t.len(), traces, "{file}");
         assert!(t.iter().all(|t| t.len() == samples), "{file}");
-        assert!((t[0].sample_interval_ns - dt).abs() < 1e-9, "{file}: {}", t[0].sample_interval_ns);
+        assert!(
+            (t[0].sample_interval_ns - dt).abs() < 1e-9,
+            "{file}: {}",
+            t[0].sample_interval_ns
+        );
         let w: Vec<WheelOdometry> = decode_all(&p["/wheel/odometry"]);
         assert_eq!(w.len(), traces, "{file}: a distance per trace");
         if spacing.is_finite() {
@@ -1152,7 +1155,14 @@ fn bad_radar_files_get_clear_errors_and_lose_no_complete_trace() {
     let cut = dir.path().join("cut.DZT");
     std::fs::write(&cut, &bytes[..bytes.len() - 300]).expect("write");
     let out = dir.path().join("cut.mcap");
-    let o = gprflow(&["convert", cut.to_str().expect("utf8"), "--to", "mcap", "-o", out.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "convert",
+        cut.to_str().expect("utf8"),
+        "--to",
+        "mcap",
+        "-o",
+        out.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("1039 messages"), "{text}");
@@ -1163,13 +1173,27 @@ fn bad_radar_files_get_clear_errors_and_lose_no_complete_trace() {
     bad[7] = 0;
     let badf = dir.path().join("bits.DZT");
     std::fs::write(&badf, &bad).expect("write");
-    let o = gprflow(&["convert", badf.to_str().expect("utf8"), "--to", "mcap", "-o", out.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "convert",
+        badf.to_str().expect("utf8"),
+        "--to",
+        "mcap",
+        "-o",
+        out.to_str().expect("utf8"),
+    ]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("bits.DZT: header: rh_bits: 12"), "{}", stderr(&o));
     // a DT1 without its HD
     let dt1 = dir.path().join("line.DT1");
     std::fs::copy(real_gpr("SnS_WARR_XLINE00.DT1"), &dt1).expect("copy");
-    let o = gprflow(&["convert", dt1.to_str().expect("utf8"), "--to", "mcap", "-o", out.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "convert",
+        dt1.to_str().expect("utf8"),
+        "--to",
+        "mcap",
+        "-o",
+        out.to_str().expect("utf8"),
+    ]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("line.HD: not found"), "{}", stderr(&o));
     // the same errors stop a launched ingest stage with the file named
@@ -1193,9 +1217,55 @@ fn bad_radar_files_get_clear_errors_and_lose_no_complete_trace() {
     );
     std::fs::write(seq.join("gpr_meas.csv"), gpr).expect("write");
     std::fs::write(seq.join("we_odom_meas.csv"), "t,dist\n1.0,0.0\n1.1,0.05\n").expect("write");
-    let o = gprflow(&["convert", seq.to_str().expect("utf8"), "--to", "mcap", "-o", out.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "convert",
+        seq.to_str().expect("utf8"),
+        "--to",
+        "mcap",
+        "-o",
+        out.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("/gpr/trace                   2 messages"), "{text}");
     assert!(text.contains("gpr_meas.csv:3"), "{text}");
+}
+
+#[test]
+fn lgpr_sweep_chain_turns_simulated_sweeps_into_high_passed_range_profiles() {
+    use gprflow::msg::Sweep;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("lgpr.mcap");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-sweeps.yaml",
+        "--record",
+        rec.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let p = payloads(&rec);
+    let out: Vec<Sweep> = decode_all(&p["/lgpr/sweep"]);
+    // every one of the 5 s x 126 Hz sweeps, none waiting on the factory calibration
+    assert_eq!(out.len(), 631);
+    let t0 = out[0].header.stamp.to_ns();
+    let mut still = 0.0f32;
+    let mut moving = 0.0f32;
+    for s in &out {
+        assert_eq!(s.domain, Sweep::DOMAIN_TIME);
+        assert_eq!((s.channel_count, s.bin_count), (11, 369));
+        assert_eq!(s.values.len(), 11 * 369);
+        assert!(s.calibration.is_empty());
+        assert!(s.values.iter().all(|v| v.is_finite()));
+        let peak = s.values.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let t = (s.header.stamp.to_ns() - t0) as f64 * 1e-9;
+        // the vehicle stands for the first 2.3 s, then accelerates
+        if t < 2.0 {
+            still = still.max(peak);
+        } else if t > 3.0 {
+            moving = moving.max(peak);
+        }
+    }
+    // standing still, the distance IIR holds its mean (beta = 1): the static scene and the
+    // ground bounce cancel and only noise is left; moving, the subsurface features pass
+    assert!(moving > 20.0 * still, "moving peak {moving}, still peak {still}");
 }

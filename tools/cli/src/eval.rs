@@ -548,7 +548,7 @@ pub fn radargram_command(
     submap: Option<u32>,
     output: &Path,
 ) -> Result<ExitCode> {
-    use gprflow::msg::{Message, Samples, Submap, Trace};
+    use gprflow::msg::{Message, Samples, Submap, Sweep, Trace};
     let as_columns = |trace: &Trace<'_>| -> Vec<f32> {
         match trace.samples() {
             Samples::I16(s) => s.iter().map(|&v| f32::from(v)).collect(),
@@ -582,6 +582,7 @@ pub fn radargram_command(
         let mut failure = None;
         let mut best: Option<(f32, u32, Vec<Vec<f32>>)> = None;
         let is_submap = ty.as_deref() == Some(Submap::TYPE_NAME);
+        let is_sweep = ty.as_deref() == Some(Sweep::TYPE_NAME);
         rec.scan(|m| {
             if m.topic != topic || failure.is_some() {
                 return;
@@ -612,6 +613,29 @@ pub fn radargram_command(
             let t0 = *first.get_or_insert(m.log_time);
             let t = (m.log_time - t0) as f64 * 1e-9;
             if t < from_s || to_s.is_some_and(|end| t > end) {
+                return;
+            }
+            if is_sweep {
+                // time-domain sweeps: the middle channel
+                match gprflow::msg::decode::<Sweep>(m.data) {
+                    Ok(s) if s.domain == Sweep::DOMAIN_TIME && s.channel_count > 0 => {
+                        let n = s.bin_count as usize;
+                        let ch = s.channel_count as usize / 2;
+                        traces.push(
+                            s.values
+                                .get(ch * n..(ch + 1) * n)
+                                .map(<[f32]>::to_vec)
+                                .unwrap_or_default(),
+                        );
+                    }
+                    Ok(_) => {
+                        failure = Some(format!(
+                            "{}: {topic}: frequency-domain sweeps (run them through lgpr_dsp first)",
+                            input.display()
+                        ))
+                    }
+                    Err(e) => failure = Some(format!("{}: {topic} seq {}: {e}", input.display(), m.sequence)),
+                }
                 return;
             }
             match gprflow::msg::decode::<Trace>(m.data) {

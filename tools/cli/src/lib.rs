@@ -13,6 +13,7 @@ use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, descr
 use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_ingest::node::IngestStage;
+use gprflow_lgpr::node::LgprDspStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
 
@@ -26,6 +27,7 @@ pub fn catalog() -> StageCatalog {
         .with(describe::<IngestStage>())
         .with(describe::<DspStage>())
         .with(describe::<DspSubmapStage>())
+        .with(describe::<LgprDspStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -55,6 +57,7 @@ pub fn run_stage(
         IngestStage::NAME => run::<IngestStage>(spec, &transport, stop),
         DspStage::NAME => run::<DspStage>(spec, &transport, stop),
         DspSubmapStage::NAME => run::<DspSubmapStage>(spec, &transport, stop),
+        LgprDspStage::NAME => run::<LgprDspStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(
