@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every test: formatting, lints, unit and property tests, end-to-end tests with real
-# processes, and the peer checks against the Python MCAP reader and evo (installed into
-# .venv-peers) and GTSAM (installed into .venv-gtsam).
+# processes, and the peer checks against the Python MCAP reader, evo, scipy, PyWavelets and
+# scikit-image (installed into .venv-peers) and GTSAM (installed into .venv-gtsam).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 tools/peer/setup-venv.sh
@@ -16,4 +16,8 @@ cargo nextest run --workspace --no-fail-fast
 # committed problem and must still give the figures our test (peer_gtsam, run above) compares
 # against
 tools/peer/gtsam_check.sh --verify
+# peer checks of the signal processing: scipy.signal, scipy.ndimage, PyWavelets, scikit-image and
+# numpy regenerate the committed fixtures the dsp and lgpr peer tests (run above) compare against
+.venv-peers/bin/python tools/peer/dsp_fixtures.py --verify
+.venv-peers/bin/python tools/peer/sfcw_fixtures.py --verify
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
