@@ -1208,7 +1208,7 @@ fn bad_radar_files_get_clear_errors_and_lose_no_complete_trace() {
     // a CMU-GPR row with NaN is dropped and reported with file and line
     let seq = dir.path().join("seq");
     std::fs::create_dir(&seq).expect("mkdir");
-    let row = |t: &str, v: &str| format!("{t},{}\n", vec![v; 4].join(","));
+    let row = |t: &str, v: &str| format!("{t},{}\n", [v; 4].join(","));
     let gpr = format!(
         "t,amp_1,amp_2,amp_3,amp_4\n{}{}{}",
         row("1.00", "5"),

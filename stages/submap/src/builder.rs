@@ -494,7 +494,7 @@ mod tests {
         distance: impl Fn(f64) -> f64,
         gyro: impl Fn(f64) -> f64,
     ) -> (Vec<Submap>, SubmapStats) {
-        let mut b = SubmapBuilder::new(params).unwrap();
+        let mut b = SubmapBuilder::new(params).expect("test input is valid");
         let mut out = Vec::new();
         // merge the three streams in stamp order
         let mut events: Vec<(i64, u8)> = Vec::new();
@@ -509,10 +509,10 @@ mod tests {
                 0 => {
                     let d = distance(ts);
                     let trace: Vec<f32> = (0..ROWS).map(|r| ground(d, r)).collect();
-                    out.extend(b.trace(t, &trace).unwrap());
+                    out.extend(b.trace(t, &trace).expect("test input is valid"));
                 }
-                1 => out.extend(b.wheel(t, distance(ts)).unwrap()),
-                _ => b.imu(t, gyro(ts), 0.0).unwrap(),
+                1 => out.extend(b.wheel(t, distance(ts)).expect("test input is valid")),
+                _ => b.imu(t, gyro(ts), 0.0).expect("test input is valid"),
             }
         }
         out.extend(b.finish());
@@ -582,7 +582,7 @@ mod tests {
         assert!((98..=104).contains(&valid.len()), "{}", valid.len());
         assert!((145..=152).contains(&invalid.len()), "{}", invalid.len());
         assert!(invalid.iter().all(|m| m.invalid_reason.contains("reverses")));
-        let back = valid.last().unwrap();
+        let back = valid.last().expect("test input is valid");
         assert!(back.end_distance_m < back.start_distance_m);
         // the backward leg sees the same ground: column c of the backward submap sits at the
         // distance of its centre
@@ -620,16 +620,16 @@ mod tests {
 
     #[test]
     fn bad_measurements_are_refused_with_the_reason() {
-        let mut b = SubmapBuilder::new(SubmapParams::default()).unwrap();
-        b.trace(10, &[1.0, 2.0]).unwrap();
-        let e = b.trace(20, &[1.0, f32::NAN]).unwrap_err().to_string();
+        let mut b = SubmapBuilder::new(SubmapParams::default()).expect("test input is valid");
+        b.trace(10, &[1.0, 2.0]).expect("test input is valid");
+        let e = b.trace(20, &[1.0, f32::NAN]).expect_err("refused").to_string();
         assert!(e.contains("sample 1 is not finite"), "{e}");
-        let e = b.trace(30, &[1.0, 2.0, 3.0]).unwrap_err().to_string();
+        let e = b.trace(30, &[1.0, 2.0, 3.0]).expect_err("refused").to_string();
         assert!(e.contains("3 samples, the first trace had 2"), "{e}");
-        let e = b.trace(5, &[1.0, 2.0]).unwrap_err().to_string();
+        let e = b.trace(5, &[1.0, 2.0]).expect_err("refused").to_string();
         assert!(e.contains("before the previous trace"), "{e}");
-        b.wheel(100, 0.0).unwrap();
-        let e = b.wheel(50, 0.1).unwrap_err().to_string();
+        b.wheel(100, 0.0).expect("test input is valid");
+        let e = b.wheel(50, 0.1).expect_err("refused").to_string();
         assert!(e.contains("before the previous one"), "{e}");
         assert!(b.wheel(200, f64::INFINITY).is_err());
         assert!(b.imu(200, f64::NAN, 0.0).is_err());
@@ -638,9 +638,9 @@ mod tests {
 
     #[test]
     fn traces_without_any_wheel_are_counted() {
-        let mut b = SubmapBuilder::new(SubmapParams::default()).unwrap();
-        b.trace(10, &[1.0]).unwrap();
-        b.trace(20, &[1.0]).unwrap();
+        let mut b = SubmapBuilder::new(SubmapParams::default()).expect("test input is valid");
+        b.trace(10, &[1.0]).expect("test input is valid");
+        b.trace(20, &[1.0]).expect("test input is valid");
         assert!(b.finish().is_empty());
         assert_eq!(b.stats().traces_without_wheel, 2);
     }

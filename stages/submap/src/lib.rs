@@ -210,11 +210,21 @@ mod tests {
             spacing_m: f64::NAN,
             ..SubmapParams::default()
         };
-        assert!(bad.validate().unwrap_err().to_string().starts_with("spacing_m:"));
+        assert!(
+            bad.validate()
+                .expect_err("refused")
+                .to_string()
+                .starts_with("spacing_m:")
+        );
         let tiny = SubmapParams {
             length_m: 0.01,
             ..SubmapParams::default()
         };
-        assert!(tiny.validate().unwrap_err().to_string().starts_with("length_m:"));
+        assert!(
+            tiny.validate()
+                .expect_err("refused")
+                .to_string()
+                .starts_with("length_m:")
+        );
     }
 }
