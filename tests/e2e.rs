@@ -1269,3 +1269,29 @@ fn lgpr_sweep_chain_turns_simulated_sweeps_into_high_passed_range_profiles() {
     // ground bounce cancel and only noise is left; moving, the subsurface features pass
     assert!(moving > 20.0 * still, "moving peak {moving}, still peak {still}");
 }
+
+#[test]
+fn a_real_dzt_line_runs_through_the_submap_pipeline() {
+    use gprflow::msg::Submap;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("dzt.mcap");
+    let dzt = real_gpr("GSSI_FILE____032.DZT");
+    let o = gprflow(&[
+        "launch",
+        "graphs/submaps.yaml",
+        "--set",
+        &format!("recording={}", dzt.display()),
+        "--record",
+        rec.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let p = payloads(&rec);
+    let maps: Vec<Submap> = decode_all(&p["/filter/submap"]);
+    // 1040 scans at 50 scans/m: 20.78 m of line, a submap every 0.02 m after the first 3 m
+    // (traces 0.02 m apart fill every 0.015 m column but one in four: the rest interpolated)
+    assert!((880..=892).contains(&maps.len()), "{} submaps", maps.len());
+    assert!(maps.iter().all(|m| m.valid && m.rows == 512 && m.cols == 200));
+    assert!(maps.iter().all(|m| m.pixels.iter().all(|v| v.is_finite())));
+    let last = maps.last().expect("submaps");
+    assert!((last.end_distance_m - 20.78).abs() < 0.03, "{}", last.end_distance_m);
+}

@@ -156,7 +156,8 @@ impl Port {
 pub struct Loaded {
     /// (port, stamp ns, CDR payload), sorted by stamp (stable: file order among equal stamps).
     pub messages: Vec<(Port, i64, Vec<u8>)>,
-    /// Records the reader skipped and counted, one line each (file, record, reason).
+    /// Records the reader skipped, or published with a corrected stamp: one line each (file,
+    /// record, reason).
     pub dropped: Vec<String>,
     /// What was read, for logs: format and a short summary.
     pub summary: String,
@@ -274,9 +275,20 @@ fn load_radargram(r: &Radargram, params: &IngestParams) -> Loaded {
     // scan index per channel: traces of one scan share a stamp
     let channels = usize::from(r.channels.max(1));
     let mut last_distance: Option<f64> = None;
+    let mut last_stamp = i64::MIN;
     for (i, t) in r.traces.iter().enumerate() {
         let scan = i / channels;
-        let stamp = t.stamp_ns.unwrap_or((scan as f64 * period_ns).round() as i64);
+        let mut stamp = t.stamp_ns.unwrap_or((scan as f64 * period_ns).round() as i64);
+        if stamp < last_stamp {
+            // a clock going back (a DT1's time of day past midnight): the trace keeps its
+            // place in the line, published at the previous stamp, and is reported
+            loaded.dropped.push(format!(
+                "{}: trace {i}: stamp goes back from {last_stamp} to {stamp} ns: published at {last_stamp} ns",
+                r.source.display()
+            ));
+            stamp = last_stamp;
+        }
+        last_stamp = stamp;
         let (i16s, i32s): (Cow<'_, [i16]>, Cow<'_, [i32]>) = match &t.samples {
             RawSamples::I16(v) => (Cow::Borrowed(v), Cow::Borrowed(&[])),
             RawSamples::I32(v) => (Cow::Borrowed(&[]), Cow::Borrowed(v)),
@@ -540,4 +552,77 @@ impl Stage for IngestStage {
 /// The line the launcher reads to show progress.
 fn report_progress(done: usize, total: usize) {
     eprintln!("{} {done} {total}", gprflow::launch::PROGRESS_TAG);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::radargram::RawTrace;
+
+    fn params() -> IngestParams {
+        IngestParams {
+            source: "x.dt1".into(),
+            format: SourceFormat::Auto,
+            pace: Pace::Max,
+            speed: 1.0,
+            trace_interval_s: 0.01,
+            center_frequency_hz: None,
+            topics: TopicMap::default(),
+        }
+    }
+
+    #[test]
+    fn a_clock_going_back_keeps_every_trace_in_order_and_is_reported() {
+        let trace = |stamp_ns: i64, v: i16| RawTrace {
+            channel: 0,
+            stamp_ns: Some(stamp_ns),
+            distance_m: f64::from(v),
+            samples: RawSamples::I16(vec![v; 3]),
+        };
+        let r = Radargram {
+            source: "line.DT1".into(),
+            format: Format::Dt1,
+            channels: 1,
+            samples_per_trace: 3,
+            sample_interval_ns: 0.8,
+            time_zero_ns: 0.0,
+            center_frequency_hz: 50e6,
+            traces: vec![trace(100, 1), trace(200, 2), trace(50, 3), trace(300, 4)],
+            dropped: Vec::new(),
+        };
+        let mut l = load_radargram(&r, &params());
+        l.messages.sort_by_key(|m| m.1);
+        let traces: Vec<(i64, i16)> = l
+            .messages
+            .iter()
+            .filter(|m| m.0 == Port::Gpr)
+            .map(|m| {
+                let t: Trace = gprflow::msg::decode(&m.2).expect("decodes");
+                (m.1, t.samples_i16[0])
+            })
+            .collect();
+        assert_eq!(traces, vec![(100, 1), (200, 2), (200, 3), (300, 4)]);
+        assert_eq!(l.dropped.len(), 1);
+        assert!(
+            l.dropped[0].contains("line.DT1: trace 2: stamp goes back from 200 to 50 ns"),
+            "{:?}",
+            l.dropped
+        );
+    }
+
+    #[test]
+    fn unknown_extensions_and_bad_intervals_are_refused_with_the_key() {
+        let e = load(&IngestParams {
+            source: "notes.txt".into(),
+            ..params()
+        })
+        .expect_err("refused");
+        assert!(e.to_string().contains("notes.txt: cannot tell the format"), "{e}");
+        let e = load(&IngestParams {
+            trace_interval_s: 0.0,
+            ..params()
+        })
+        .expect_err("refused");
+        assert!(e.to_string().starts_with("trace_interval_s:"), "{e}");
+    }
 }

@@ -61,7 +61,7 @@ pub fn convert_to_mcap(input: &Path, format: SourceFormat, output: &Path) -> Res
         writeln!(out, "  {:<28} {n} messages", port.topic())?;
     }
     for d in &loaded.dropped {
-        writeln!(out, "  skipped {d}")?;
+        writeln!(out, "  reported: {d}")?;
     }
     writeln!(out, "written to {}", output.display())?;
     Ok(ExitCode::SUCCESS)

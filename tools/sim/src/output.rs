@@ -200,12 +200,11 @@ struct CmuWriter {
     truth: BufWriter<File>,
 }
 
+/// A stamp as decimal seconds with nine decimals (`-1.500000000` for -1.5 s).
 fn seconds(stamp_ns: i64) -> String {
-    format!(
-        "{}.{:09}",
-        stamp_ns.div_euclid(1_000_000_000),
-        stamp_ns.rem_euclid(1_000_000_000)
-    )
+    let sign = if stamp_ns < 0 { "-" } else { "" };
+    let magnitude = stamp_ns.unsigned_abs();
+    format!("{sign}{}.{:09}", magnitude / 1_000_000_000, magnitude % 1_000_000_000)
 }
 
 impl CmuWriter {
@@ -565,4 +564,15 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
         messages: counts,
         distance_m,
     })
+}
+
+#[cfg(test)]
+mod seconds_tests {
+    #[test]
+    fn seconds_writes_negative_stamps_with_their_sign() {
+        assert_eq!(super::seconds(1_600_000_000_020_000_000), "1600000000.020000000");
+        assert_eq!(super::seconds(-1_500_000_000), "-1.500000000");
+        assert_eq!(super::seconds(-5), "-0.000000005");
+        assert_eq!(super::seconds(i64::MIN), "-9223372036.854775808");
+    }
 }
