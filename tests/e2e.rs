@@ -1295,3 +1295,80 @@ fn a_real_dzt_line_runs_through_the_submap_pipeline() {
     let last = maps.last().expect("submaps");
     assert!((last.end_distance_m - 20.78).abs() < 0.03, "{}", last.end_distance_m);
 }
+
+#[test]
+fn unusable_traces_are_dropped_counted_and_named_while_the_run_goes_on() {
+    use gprflow::msg::{Header, Message, Submap, Trace, WheelOdometry, encode};
+    use std::borrow::Cow;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("bad-traces.mcap");
+    {
+        let mut w =
+            gprflow::record::Recorder::create(&rec, &gprflow::record::RunMetadata::this_build()).expect("create");
+        let tr = w.add_topic("/gpr/trace", Trace::TYPE_NAME).expect("topic");
+        let wh = w.add_topic("/wheel/odometry", WheelOdometry::TYPE_NAME).expect("topic");
+        // 4 m at 1 m/s, 100 traces/s, 201 samples; trace 50 holds a NaN, trace 60 is short
+        for k in 0..400i64 {
+            let stamp = 1_000_000_000 + k * 10_000_000;
+            let mut samples: Vec<f32> = (0..201)
+                .map(|i| ((i as f32) * 0.3 + (k as f32) * 0.05).sin() * 1000.0)
+                .collect();
+            if k == 50 {
+                samples[5] = f32::NAN;
+            }
+            if k == 60 {
+                samples.truncate(150);
+            }
+            let t = Trace {
+                header: Header::new(stamp, "gpr"),
+                sample_interval_ns: 0.2,
+                center_frequency_hz: 5e8,
+                distance_m: f64::NAN,
+                samples_f32: Cow::Owned(samples),
+                ..Trace::default()
+            };
+            w.write(tr, k as u64, stamp, &encode(&t)).expect("write");
+            if k % 2 == 0 {
+                let m = WheelOdometry {
+                    header: Header::new(stamp, "odom"),
+                    distance_m: k as f64 * 0.01,
+                    ticks: 0,
+                    speed_mps: 1.0,
+                };
+                w.write(wh, (k / 2) as u64, stamp, &encode(&m)).expect("write");
+            }
+        }
+        w.finish().expect("finish");
+    }
+    let graph = dir.path().join("g.yaml");
+    std::fs::write(
+        &graph,
+        "name: bad\nnodes:\n  ingest: { stage: ingest, params: { source: \"".to_owned()
+            + rec.to_str().expect("utf8")
+            + "\" } }\n  dsp: { stage: dsp, inputs: { trace: ingest/gpr } }\n  submap: { stage: submap, inputs: { trace: dsp/trace, wheel: ingest/wheel } }\nrecord: { topics: [\"dsp/*\", \"submap/*\"] }\n",
+    )
+    .expect("graph");
+    let out = dir.path().join("out.mcap");
+    let o = gprflow(&[
+        "launch",
+        graph.to_str().expect("utf8"),
+        "--record",
+        out.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("topic=\"ingest/gpr\" seq=50") && err.contains("trace: value 5 is not finite"),
+        "{err}"
+    );
+    assert!(
+        err.contains("seq=60") && err.contains("expected 201 values, got 150"),
+        "{err}"
+    );
+    assert!(err.contains("dsp: messages dropped as unusable messages=2"), "{err}");
+    let p = payloads(&out);
+    assert_eq!(p["/dsp/trace"].len(), 398);
+    let maps: Vec<Submap> = decode_all(&p["/submap/submap"]);
+    // 3.98 m of travel: submaps from 3 m on, every 0.02 m
+    assert!((45..=52).contains(&maps.len()), "{}", maps.len());
+}

@@ -10,7 +10,7 @@
 
 mod stages;
 
-pub use stages::{PROMISE_EVERY_NS, Pace, RecordParams, RecordStage, ReplayParams, ReplayStage};
+pub use stages::{PROMISE_EVERY_NS, Pace, Player, RecordParams, RecordStage, ReplayParams, ReplayStage};
 
 use std::collections::BTreeMap;
 use std::fs::File;

@@ -122,9 +122,13 @@ fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
         .collect())
 }
 
-/// Publishes the messages of a recording, each on the output named after its topic.
+/// A list of encoded messages sent in stamp order at a pace: the part every source stage that
+/// publishes what it read shares (the `replay` stage, the `ingest` stage). As its stamps
+/// advance it promises them on every output, so that a consumer merging an idle output (a
+/// topic with one message at the start) with a busy one never waits for the idle one.
 #[derive(Debug)]
-pub struct ReplayStage {
+pub struct Player {
+    /// (output index, stamp ns, CDR payload), in stamp order.
     messages: Vec<(usize, i64, Vec<u8>)>,
     next: usize,
     pace: Pace,
@@ -137,6 +141,69 @@ pub struct ReplayStage {
 
 /// How far a source's stamps advance before it promises them on every output (sensor time).
 pub const PROMISE_EVERY_NS: i64 = 5_000_000;
+
+impl Player {
+    /// A player of `messages` (output index, stamp ns, payload), which must be in stamp order;
+    /// `speed` scales the recorded pace.
+    pub fn new(messages: Vec<(usize, i64, Vec<u8>)>, pace: Pace, speed: f64) -> Self {
+        Self {
+            messages,
+            next: 0,
+            pace,
+            speed,
+            started: Instant::now(),
+            last_progress: Instant::now(),
+            promised_ns: i64::MIN,
+        }
+    }
+
+    /// Messages to send.
+    pub fn len(&self) -> usize {
+        self.messages.len()
+    }
+
+    /// True when there is nothing to send.
+    pub fn is_empty(&self) -> bool {
+        self.messages.is_empty()
+    }
+
+    /// Sends the next message (or waits for its time at `recorded` pace); for
+    /// [`Stage::produce`].
+    ///
+    /// # Errors
+    /// Bus errors.
+    pub fn produce(&mut self, out: &mut Outputs) -> Result<Produce, StageError> {
+        let Some((index, stamp, data)) = self.messages.get(self.next) else {
+            report_progress(self.next, self.messages.len());
+            return Ok(Produce::Done);
+        };
+        if self.pace == Pace::Recorded {
+            let first = self.messages.first().map_or(*stamp, |m| m.1);
+            let offset = Duration::from_secs_f64((stamp - first).max(0) as f64 * 1e-9 / self.speed);
+            if let Some(wait) = offset.checked_sub(self.started.elapsed()) {
+                std::thread::sleep(wait.min(Duration::from_millis(100)));
+                return Ok(Produce::More);
+            }
+        }
+        out.send_bytes(*index, *stamp, data)?;
+        if *stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
+            out.promise(*stamp)?;
+            self.promised_ns = *stamp;
+        }
+        self.next += 1;
+        if self.last_progress.elapsed() > Duration::from_millis(200) {
+            self.last_progress = Instant::now();
+            report_progress(self.next, self.messages.len());
+        }
+        Ok(Produce::More)
+    }
+}
+
+/// Publishes the messages of a recording, each on the output named after its topic.
+#[derive(Debug)]
+pub struct ReplayStage {
+    player: Player,
+}
 
 impl Stage for ReplayStage {
     type Params = ReplayParams;
@@ -171,41 +238,12 @@ impl Stage for ReplayStage {
             );
         }
         Ok(Self {
-            messages,
-            next: 0,
-            pace: params.pace,
-            speed: params.speed,
-            started: Instant::now(),
-            last_progress: Instant::now(),
-            promised_ns: i64::MIN,
+            player: Player::new(messages, params.pace, params.speed),
         })
     }
 
     fn produce(&mut self, out: &mut Outputs) -> Result<Produce, StageError> {
-        let Some((index, stamp, data)) = self.messages.get(self.next) else {
-            report_progress(self.next, self.messages.len());
-            return Ok(Produce::Done);
-        };
-        if self.pace == Pace::Recorded {
-            let first = self.messages.first().map_or(*stamp, |m| m.1);
-            let offset = Duration::from_secs_f64((stamp - first).max(0) as f64 * 1e-9 / self.speed);
-            if let Some(wait) = offset.checked_sub(self.started.elapsed()) {
-                std::thread::sleep(wait.min(Duration::from_millis(100)));
-                return Ok(Produce::More);
-            }
-        }
-        out.send_bytes(*index, *stamp, data)?;
-        // messages are in stamp order: the other topics will not go back before this one
-        if *stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
-            out.promise(*stamp)?;
-            self.promised_ns = *stamp;
-        }
-        self.next += 1;
-        if self.last_progress.elapsed() > Duration::from_millis(200) {
-            self.last_progress = Instant::now();
-            report_progress(self.next, self.messages.len());
-        }
-        Ok(Produce::More)
+        self.player.produce(out)
     }
 }
 

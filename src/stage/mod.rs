@@ -6,8 +6,11 @@
 //! input, so the output is a deterministic function of the inputs), propagates end of
 //! stream, stops cleanly on SIGINT/SIGTERM, and reports counts and latency percentiles.
 
+mod drops;
 mod runtime;
 mod spec;
+
+pub use drops::Drops;
 
 pub use runtime::{
     Input, InputBinding, InputId, NodeSpec, Output, OutputBinding, Outputs, Ports, Produce, RunReport, StageError,

@@ -5,7 +5,9 @@
 use std::borrow::Cow;
 
 use gprflow::msg::{Message, Samples, Submap, Trace};
-use gprflow::stage::{Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use gprflow::stage::{
+    Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
+};
 
 use crate::chain::{ChainParams, TraceChain};
 use crate::image::{GaussianParams, Shape, WaveletDenoiseParams, denoise_wavelet, gaussian_smooth, saliency};
@@ -85,7 +87,7 @@ pub struct DspStage {
     chain: Option<TraceChain>,
     out: Output<Trace<'static>>,
     scratch: Vec<f32>,
-    rejected: u64,
+    drops: Drops,
     no_zero_time: u64,
 }
 
@@ -143,7 +145,7 @@ impl Stage for DspStage {
             chain: None,
             out: ports.output("trace")?,
             scratch: Vec::new(),
-            rejected: 0,
+            drops: Drops::new(),
             no_zero_time: 0,
         })
     }
@@ -166,10 +168,7 @@ impl Stage for DspStage {
         let processed = match chain.push(&self.scratch) {
             Ok(p) => p,
             Err(e @ (Error::Size { .. } | Error::NonFinite { .. })) => {
-                self.rejected += 1;
-                if self.rejected <= 10 {
-                    tracing::warn!(topic = input.topic(), seq = input.seq(), "dsp: dropped: {e}");
-                }
+                self.drops.record(Self::NAME, &input, &e);
                 return Ok(());
             }
             Err(e) => return Err(StageError::failed(e)),
@@ -197,12 +196,7 @@ impl Stage for DspStage {
     }
 
     fn finish(&mut self, _out: &mut Outputs) -> std::result::Result<(), StageError> {
-        if self.rejected > 0 {
-            tracing::warn!(
-                traces = self.rejected,
-                "dsp: traces dropped (wrong length or non-finite samples)"
-            );
-        }
+        self.drops.report(Self::NAME);
         if self.no_zero_time > 0 {
             tracing::info!(
                 traces = self.no_zero_time,
@@ -256,7 +250,7 @@ pub struct DspSubmapStage {
     /// End distance of the previous submap (to add only new columns to the background).
     previous_end_m: Option<f64>,
     out: Output<Submap<'static>>,
-    rejected: u64,
+    drops: Drops,
 }
 
 impl DspSubmapStage {
@@ -324,7 +318,7 @@ impl Stage for DspSubmapStage {
             background: None,
             previous_end_m: None,
             out: ports.output("submap")?,
-            rejected: 0,
+            drops: Drops::new(),
         })
     }
 
@@ -337,15 +331,8 @@ impl Stage for DspSubmapStage {
         match self.filter(&mut m) {
             Ok(()) => {}
             Err(e @ (Error::Size { .. } | Error::NonFinite { .. })) => {
-                self.rejected += 1;
-                if self.rejected <= 10 {
-                    tracing::warn!(
-                        topic = input.topic(),
-                        seq = input.seq(),
-                        id = m.id,
-                        "dsp_submap: dropped: {e}"
-                    );
-                }
+                self.drops
+                    .record(Self::NAME, &input, &format_args!("submap {}: {e}", m.id));
                 return Ok(());
             }
             Err(e) => return Err(StageError::failed(e)),
@@ -370,12 +357,7 @@ impl Stage for DspSubmapStage {
     }
 
     fn finish(&mut self, _out: &mut Outputs) -> std::result::Result<(), StageError> {
-        if self.rejected > 0 {
-            tracing::warn!(
-                submaps = self.rejected,
-                "dsp_submap: submaps dropped (wrong size or non-finite pixels)"
-            );
-        }
+        self.drops.report(Self::NAME);
         Ok(())
     }
 }

@@ -5,7 +5,9 @@ use gprflow::msg::{
     Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Point, Pose, PoseStamped,
     PoseWithCovariance, Quaternion, Registration, StateEstimate, Trajectory, Vector3 as Vector3Msg, WheelOdometry,
 };
-use gprflow::stage::{Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use gprflow::stage::{
+    Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
+};
 use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::imu::ImuParams;
@@ -123,7 +125,7 @@ pub struct EstimateStage {
     /// The first `initial_pose` message was seen (later ones are ignored).
     origin_seen: bool,
     /// Messages dropped as unusable (non-finite values).
-    rejected: u64,
+    drops: Drops,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -174,15 +176,7 @@ impl EstimateStage {
         match result {
             Ok(v) => Ok(Some(v)),
             Err(crate::Error::BadMeasurement(why)) => {
-                self.rejected += 1;
-                if self.rejected <= 10 {
-                    tracing::warn!(
-                        input = input.name(),
-                        topic = input.topic(),
-                        seq = input.seq(),
-                        "estimate: dropped: {why}"
-                    );
-                }
+                self.drops.record(Self::NAME, input, &why);
                 Ok(None)
             }
             Err(e) => Err(StageError::failed(e)),
@@ -329,7 +323,7 @@ impl Stage for EstimateStage {
             params,
             last_stamp_ns: 0,
             origin_seen: false,
-            rejected: 0,
+            drops: Drops::new(),
         })
     }
 
@@ -403,12 +397,7 @@ impl Stage for EstimateStage {
 
     fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
         self.est.finish().map_err(StageError::failed)?;
-        if self.rejected > 0 {
-            tracing::warn!(
-                messages = self.rejected,
-                "estimate: messages dropped as unusable (non-finite values)"
-            );
-        }
+        self.drops.report(Self::NAME);
         if self.est.dropped_before_origin() > 0 {
             tracing::info!(
                 imu_samples = self.est.dropped_before_origin(),

@@ -4,12 +4,11 @@
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
 
 use gprflow::msg::{
     Header, Imu, Message, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, encode,
 };
-use gprflow::record::{PROMISE_EVERY_NS, Pace, Recording};
+use gprflow::record::{Pace, Player, Recording};
 use gprflow::stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::cmu::CmuSequence;
@@ -461,15 +460,7 @@ fn load_mcap(path: &Path, map: &TopicMap) -> Result<Loaded, LoadError> {
 /// The ingest stage.
 #[derive(Debug)]
 pub struct IngestStage {
-    messages: Vec<(Port, i64, Vec<u8>)>,
-    /// Output index per port (ports always exist).
-    next: usize,
-    pace: Pace,
-    speed: f64,
-    started: Instant,
-    last_progress: Instant,
-    /// Stamp last promised on every output.
-    promised_ns: i64,
+    player: Player,
 }
 
 impl Stage for IngestStage {
@@ -509,49 +500,19 @@ impl Stage for IngestStage {
         }
         // port order = output order
         debug_assert!(ports.outputs().iter().zip(Port::ALL).all(|(o, p)| o.name == p.name()));
+        let messages = loaded
+            .messages
+            .into_iter()
+            .map(|(port, stamp, data)| (Port::ALL.iter().position(|p| *p == port).unwrap_or(0), stamp, data))
+            .collect();
         Ok(Self {
-            messages: loaded.messages,
-            next: 0,
-            pace: params.pace,
-            speed: params.speed,
-            started: Instant::now(),
-            last_progress: Instant::now(),
-            promised_ns: i64::MIN,
+            player: Player::new(messages, params.pace, params.speed),
         })
     }
 
     fn produce(&mut self, out: &mut Outputs) -> Result<Produce, StageError> {
-        let Some((port, stamp, data)) = self.messages.get(self.next) else {
-            report_progress(self.next, self.messages.len());
-            return Ok(Produce::Done);
-        };
-        if self.pace == Pace::Recorded {
-            let first = self.messages.first().map_or(*stamp, |m| m.1);
-            let offset = Duration::from_secs_f64((stamp - first).max(0) as f64 * 1e-9 / self.speed);
-            if let Some(wait) = offset.checked_sub(self.started.elapsed()) {
-                std::thread::sleep(wait.min(Duration::from_millis(100)));
-                return Ok(Produce::More);
-            }
-        }
-        let index = Port::ALL.iter().position(|p| p == port).unwrap_or(0);
-        out.send_bytes(index, *stamp, data)?;
-        // messages are in stamp order: idle outputs will not go back before this stamp
-        if *stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
-            out.promise(*stamp)?;
-            self.promised_ns = *stamp;
-        }
-        self.next += 1;
-        if self.last_progress.elapsed() > Duration::from_millis(200) {
-            self.last_progress = Instant::now();
-            report_progress(self.next, self.messages.len());
-        }
-        Ok(Produce::More)
+        self.player.produce(out)
     }
-}
-
-/// The line the launcher reads to show progress.
-fn report_progress(done: usize, total: usize) {
-    eprintln!("{} {done} {total}", gprflow::launch::PROGRESS_TAG);
 }
 
 #[cfg(test)]

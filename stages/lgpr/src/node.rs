@@ -5,7 +5,9 @@
 use std::borrow::Cow;
 
 use gprflow::msg::{Header, Message, Sweep, WheelOdometry};
-use gprflow::stage::{Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use gprflow::stage::{
+    Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
+};
 
 use crate::Error;
 use crate::sfcw::{FactoryCalibration, SfcwChain, SfcwParams};
@@ -25,7 +27,7 @@ pub struct LgprDspStage {
     wheel: Option<(i64, f64, f64)>,
     last_distance_m: Option<f64>,
     buffer: Vec<f32>,
-    rejected: u64,
+    drops: Drops,
     before_factory: u64,
 }
 
@@ -49,11 +51,10 @@ impl LgprDspStage {
 
     fn sweep(&mut self, input: &Input<'_>, s: &Sweep<'_>, out: &mut Outputs) -> Result<(), StageError> {
         if s.domain != Sweep::DOMAIN_FREQUENCY {
-            self.rejected += 1;
-            tracing::warn!(
-                seq = input.seq(),
-                domain = s.domain,
-                "lgpr_dsp: not a frequency-domain sweep: dropped"
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!("domain {}: not a frequency-domain sweep", s.domain),
             );
             return Ok(());
         }
@@ -100,10 +101,7 @@ impl LgprDspStage {
             Err(
                 e @ (Error::Size { .. } | Error::NonFinite { .. } | Error::ZeroDivisor { .. } | Error::Distance { .. }),
             ) => {
-                self.rejected += 1;
-                if self.rejected <= 10 {
-                    tracing::warn!(topic = input.topic(), seq = input.seq(), "lgpr_dsp: dropped: {e}");
-                }
+                self.drops.record(Self::NAME, input, &e);
                 return Ok(());
             }
             Err(e) => return Err(StageError::failed(e)),
@@ -160,7 +158,7 @@ impl Stage for LgprDspStage {
             wheel: None,
             last_distance_m: None,
             buffer: Vec::new(),
-            rejected: 0,
+            drops: Drops::new(),
             before_factory: 0,
         })
     }
@@ -183,7 +181,11 @@ impl Stage for LgprDspStage {
                 if w.distance_m.is_finite() {
                     self.wheel = Some((input.stamp_ns(), w.distance_m, w.speed_mps));
                 } else {
-                    self.rejected += 1;
+                    self.drops.record(
+                        Self::NAME,
+                        &input,
+                        &format_args!("non-finite distance {}", w.distance_m),
+                    );
                 }
             }
             "sweep" => {
@@ -202,9 +204,7 @@ impl Stage for LgprDspStage {
                 "lgpr_dsp: sweeps before the factory calibration arrived: not processed"
             );
         }
-        if self.rejected > 0 {
-            tracing::warn!(messages = self.rejected, "lgpr_dsp: messages dropped as unusable");
-        }
+        self.drops.report(Self::NAME);
         Ok(())
     }
 }

@@ -6,7 +6,9 @@ use std::borrow::Cow;
 use gprflow::msg::{
     Header, Imu, Message, Point, Pose, Quaternion, Samples, Submap as SubmapMsg, Time, Trace, WheelOdometry,
 };
-use gprflow::stage::{Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use gprflow::stage::{
+    Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
+};
 
 use crate::{Error, PlanarPose, Submap, SubmapBuilder, SubmapParams};
 
@@ -16,7 +18,7 @@ pub struct SubmapStage {
     builder: SubmapBuilder,
     out: Output<SubmapMsg<'static>>,
     sample_interval_ns: f64,
-    rejected: u64,
+    drops: Drops,
     scratch: Vec<f32>,
 }
 
@@ -63,15 +65,7 @@ impl SubmapStage {
         match r {
             Ok(v) => Ok(Some(v)),
             Err(Error::BadMeasurement(why)) => {
-                self.rejected += 1;
-                if self.rejected <= 10 {
-                    tracing::warn!(
-                        input = input.name(),
-                        topic = input.topic(),
-                        seq = input.seq(),
-                        "submap: dropped: {why}"
-                    );
-                }
+                self.drops.record(Self::NAME, input, &why);
                 Ok(None)
             }
             Err(e) => Err(StageError::failed(e)),
@@ -124,7 +118,7 @@ impl Stage for SubmapStage {
             builder,
             out: ports.output("submap")?,
             sample_interval_ns: f64::NAN,
-            rejected: 0,
+            drops: Drops::new(),
             scratch: Vec::new(),
         })
     }
@@ -189,9 +183,7 @@ impl Stage for SubmapStage {
                 "submap: traces that never saw a wheel distance, not used"
             );
         }
-        if self.rejected > 0 {
-            tracing::warn!(messages = self.rejected, "submap: messages dropped as unusable");
-        }
+        self.drops.report(Self::NAME);
         Ok(())
     }
 }
