@@ -394,6 +394,16 @@ impl SubmapBuilder {
         if reason.is_empty() && ay > v.max_accel_y_mps2 {
             reason = format!("|accel y| reaches {ay:.3} m/s^2 (max {})", v.max_accel_y_mps2);
         }
+        let mut longest_gap = 0usize;
+        let mut run = 0usize;
+        for f in &filled {
+            run = if *f { 0 } else { run + 1 };
+            longest_gap = longest_gap.max(run);
+        }
+        let gap_m = longest_gap as f64 * self.params.resolution_m;
+        if reason.is_empty() && gap_m > v.max_gap_m + 1e-12 {
+            reason = format!("{gap_m:.3} m without a trace (max {} m)", v.max_gap_m);
+        }
         let valid = reason.is_empty();
         // Wheel distance at a column centre from the nearest bin's mean (exact while the
         // encoder moves one way: distance and travel differ by a constant there).
@@ -615,6 +625,42 @@ mod tests {
         for m in &maps {
             let (a, b) = (m.start_stamp_ns as f64 * 1e-9, m.end_stamp_ns as f64 * 1e-9);
             assert!(b < 7.0 + 0.02 || a > 7.5 - 0.02, "{a}..{b}");
+        }
+    }
+
+    #[test]
+    fn a_radar_outage_longer_than_the_gap_limit_invalidates() {
+        // no traces between 6.0 and 6.4 s: 0.2 m at 0.5 m/s
+        let mut b = SubmapBuilder::new(SubmapParams {
+            emit_invalid: true,
+            ..SubmapParams::default()
+        })
+        .expect("test input is valid");
+        let mut maps = Vec::new();
+        for k in 0..=1000i64 {
+            let t = k * 10_000_000;
+            let ts = t as f64 * 1e-9;
+            if k % 2 == 0 {
+                maps.extend(b.wheel(t, 0.5 * ts).expect("test input is valid"));
+            }
+            if !(6.0..6.4).contains(&ts) {
+                maps.extend(b.trace(t, &[ground(0.5 * ts, 0)]).expect("test input is valid"));
+            }
+        }
+        let spans_gap = |m: &Submap| m.start_distance_m < 3.0 && m.end_distance_m > 3.2;
+        assert!(maps.iter().any(spans_gap));
+        for m in &maps {
+            assert_eq!(
+                m.valid,
+                !spans_gap(m),
+                "{} {}..{}",
+                m.id,
+                m.start_distance_m,
+                m.end_distance_m
+            );
+            if !m.valid {
+                assert!(m.invalid_reason.contains("without a trace"), "{}", m.invalid_reason);
+            }
         }
     }
 

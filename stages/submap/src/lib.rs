@@ -12,7 +12,8 @@
 //!   empty bins are filled by linear interpolation between their nearest filled neighbours.
 //! - Validity ([`ValidityParams`]): inside the submap the z gyro rate and the y (lateral)
 //!   acceleration stay within thresholds and the encoder moves one way only (no
-//!   forward-backward motion; standing still adds no columns).
+//!   forward-backward motion; standing still adds no columns); and no run of empty columns
+//!   is longer than `max_gap_m` (the radar did not stop while the wheel moved).
 //! - Saliency ([`saliency`]): the row-wise standard deviation across columns, average-pooled
 //!   over the rows.
 //! - Poses: a planar dead-reckoning ([`PlanarOdometry`]: wheel distance along the heading
@@ -91,6 +92,10 @@ pub struct ValidityParams {
     pub max_gyro_z_radps: f64,
     /// Largest |y acceleration| (lateral) inside a valid submap, m/s^2 (default 1.5).
     pub max_accel_y_mps2: f64,
+    /// Longest run of columns without a trace that the rubber band may bridge, m (default
+    /// 0.1): beyond it the radar stopped while the wheel moved, and the interpolated image
+    /// would be invented.
+    pub max_gap_m: f64,
 }
 
 impl Default for ValidityParams {
@@ -98,6 +103,7 @@ impl Default for ValidityParams {
         Self {
             max_gyro_z_radps: 0.35,
             max_accel_y_mps2: 1.5,
+            max_gap_m: 0.1,
         }
     }
 }
@@ -119,6 +125,7 @@ impl SubmapParams {
             ("spacing_m", self.spacing_m),
             ("validity.max_gyro_z_radps", self.validity.max_gyro_z_radps),
             ("validity.max_accel_y_mps2", self.validity.max_accel_y_mps2),
+            ("validity.max_gap_m", self.validity.max_gap_m),
         ];
         for (key, v) in positive {
             if !(v.is_finite() && v > 0.0) {
