@@ -996,14 +996,22 @@ fn submap_pipeline_resamples_a_simulated_run_by_wheel_distance() {
     use gprflow::msg::Submap;
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("submaps.mcap");
-    let o = gprflow(&["launch", "graphs/submaps.yaml", "--record", rec.to_str().expect("utf8")]);
+    // a submap every 0.1 m, not 0.02 m: a fifth of the data to write and read
+    let o = gprflow(&[
+        "launch",
+        "graphs/submaps.yaml",
+        "--set",
+        "spacing_m=0.1",
+        "--record",
+        rec.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let p = payloads(&rec);
     let raw: Vec<Submap> = decode_all(&p["/submap/submap"]);
     let filtered: Vec<Submap> = decode_all(&p["/filter/submap"]);
-    // 60 s, 27 m with three corners: submaps every 0.02 m once 3 m are covered, none across
-    // a corner (the gyro rule); measured 566
-    assert!(raw.len() > 400, "{} submaps", raw.len());
+    // 60 s, 27 m with three corners: submaps every 0.1 m once 3 m are covered, none across
+    // a corner (the gyro rule)
+    assert!(raw.len() > 80, "{} submaps", raw.len());
     assert_eq!(raw.len(), filtered.len());
     for (r, f) in raw.iter().zip(&filtered) {
         assert!(r.valid && f.valid);
@@ -1019,14 +1027,14 @@ fn submap_pipeline_resamples_a_simulated_run_by_wheel_distance() {
         assert!(f.pixels.iter().all(|v| v.is_finite()));
         assert!(f.saliency.is_finite() && f.saliency > 0.0);
     }
-    // consecutive valid submaps: 0.02 m apart (to a column)
+    // consecutive valid submaps: 0.1 m apart (to a column)
     let steps: Vec<f64> = raw
         .windows(2)
         .filter(|w| w[1].id == w[0].id + 1)
         .map(|w| w[1].start_distance_m - w[0].start_distance_m)
         .collect();
-    assert!(steps.len() > 300);
-    assert!(steps.iter().all(|s| (s - 0.02).abs() <= 0.015 + 1e-9), "{steps:?}");
+    assert!(steps.len() > 60);
+    assert!(steps.iter().all(|s| (s - 0.1).abs() <= 0.015 + 1e-9), "{steps:?}");
     // the filtered submaps differ from the raw ones (background, wavelet, gaussian ran)
     assert!(raw[0].pixels != filtered[0].pixels);
     // prior-mean background: the first submap's own mean trace is removed
@@ -1281,19 +1289,25 @@ fn a_real_dzt_line_runs_through_the_submap_pipeline() {
         "graphs/submaps.yaml",
         "--set",
         &format!("recording={}", dzt.display()),
+        "--set",
+        "spacing_m=0.5",
         "--record",
         rec.to_str().expect("utf8"),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let p = payloads(&rec);
     let maps: Vec<Submap> = decode_all(&p["/filter/submap"]);
-    // 1040 scans at 50 scans/m: 20.78 m of line, a submap every 0.02 m after the first 3 m
+    // 1040 scans at 50 scans/m: 20.78 m of line, a submap every 0.5 m after the first 3 m
     // (traces 0.02 m apart fill every 0.015 m column but one in four: the rest interpolated)
-    assert!((880..=892).contains(&maps.len()), "{} submaps", maps.len());
+    assert!((35..=37).contains(&maps.len()), "{} submaps", maps.len());
     assert!(maps.iter().all(|m| m.valid && m.rows == 512 && m.cols == 200));
     assert!(maps.iter().all(|m| m.pixels.iter().all(|v| v.is_finite())));
     let last = maps.last().expect("submaps");
-    assert!((last.end_distance_m - 20.78).abs() < 0.03, "{}", last.end_distance_m);
+    assert!((last.end_distance_m - 20.78).abs() < 0.5, "{}", last.end_distance_m);
+    for w in maps.windows(2) {
+        let step = w[1].end_distance_m - w[0].end_distance_m;
+        assert!((step - 0.5).abs() < 0.02 + 1e-9, "{step}");
+    }
 }
 
 #[test]
