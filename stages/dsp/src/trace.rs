@@ -430,9 +430,16 @@ impl Bandpass {
 }
 
 /// `out[i] = Σ_d kernel[d] input[i + d]` over `i = 0..out.len()`
-/// (`input.len() = out.len() + kernel.len() - 1`), as axpy passes that vectorise; with AVX2
-/// where the CPU has it (8 lanes instead of SSE2's 4; same sums, same order).
+/// (`input.len() = out.len() + kernel.len() - 1`) for a kernel symmetric about its centre
+/// `c` (odd length `2c + 1`, `kernel[c + d] = kernel[c - d]`; both filters here are), folded
+/// so that each tap pair costs one multiply: `out[i] = k[c] in[i+c] + Σ_{d=1}^{c} k[c+d]
+/// (in[i+c-d] + in[i+c+d])`. Axpy passes that vectorise; with AVX2 where the CPU has it.
 pub(crate) fn convolve_valid(kernel: &[f32], input: &[f32], out: &mut [f32]) {
+    debug_assert!(kernel.len() % 2 == 1);
+    debug_assert!(
+        (0..kernel.len() / 2).all(|d| kernel[d] == kernel[kernel.len() - 1 - d]),
+        "kernel not symmetric"
+    );
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2, checked just above.
@@ -451,10 +458,16 @@ fn convolve_valid_avx2(kernel: &[f32], input: &[f32], out: &mut [f32]) {
 #[inline(always)]
 fn convolve_valid_portable(kernel: &[f32], input: &[f32], out: &mut [f32]) {
     let n = out.len();
-    out.fill(0.0);
-    for (d, &c) in kernel.iter().enumerate() {
-        for (o, &x) in out.iter_mut().zip(&input[d..d + n]) {
-            *o += c * x;
+    let c = kernel.len() / 2;
+    let k0 = kernel[c];
+    for (o, &x) in out.iter_mut().zip(&input[c..c + n]) {
+        *o = k0 * x;
+    }
+    for d in 1..=c {
+        let k = kernel[c + d];
+        let (left, right) = (&input[c - d..c - d + n], &input[c + d..c + d + n]);
+        for ((o, &l), &r) in out.iter_mut().zip(left).zip(right) {
+            *o += k * (l + r);
         }
     }
 }
