@@ -1291,6 +1291,8 @@ fn a_real_dzt_line_runs_through_the_submap_pipeline() {
         &format!("recording={}", dzt.display()),
         "--set",
         "spacing_m=0.5",
+        "--set",
+        "hold_first_samples=2",
         "--record",
         rec.to_str().expect("utf8"),
     ]);
@@ -1385,4 +1387,47 @@ fn unusable_traces_are_dropped_counted_and_named_while_the_run_goes_on() {
     let maps: Vec<Submap> = decode_all(&p["/submap/submap"]);
     // 3.98 m of travel: submaps from 3 m on, every 0.02 m
     assert!((45..=52).contains(&maps.len()), "{}", maps.len());
+}
+
+#[test]
+fn holding_the_dzt_counter_samples_lets_zero_time_find_the_first_negative_peak() {
+    use gprflow::msg::Trace;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dzt = real_gpr("GSSI_FILE____032.DZT");
+    let run = |hold: usize| -> Vec<Vec<f32>> {
+        let graph = dir.path().join(format!("hold{hold}.yaml"));
+        let rec = dir.path().join(format!("hold{hold}.mcap"));
+        std::fs::write(
+            &graph,
+            format!(
+                "name: hold\nnodes:\n  ingest: {{ stage: ingest, params: {{ source: \"{}\" }} }}\n  dsp: {{ stage: dsp, inputs: {{ trace: ingest/gpr }}, params: {{ hold_first_samples: {hold}, dewow: null, bandpass: null, sec_gain: null }} }}\nrecord: {{ topics: [\"dsp/*\", \"ingest/gpr\"] }}\n",
+                dzt.display()
+            ),
+        )
+        .expect("graph");
+        let o = gprflow(&[
+            "launch",
+            graph.to_str().expect("utf8"),
+            "--record",
+            rec.to_str().expect("utf8"),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let p = payloads(&rec);
+        decode_all::<Trace>(&p["/dsp/trace"])
+            .iter()
+            .map(|t| t.samples_f32.to_vec())
+            .collect()
+    };
+    let raw = run(0);
+    let held = run(2);
+    assert_eq!((raw.len(), held.len()), (1040, 1040));
+    // sample 0 of a DZT trace is a scan counter (about -32768 after the unsigned offset): left
+    // in, it is the "first negative peak" and nothing moves
+    assert!(raw.iter().all(|t| t[0] < -30_000.0), "{}", raw[0][0]);
+    // held, zero time finds the direct wave: the trace starts at a negative lobe that is the
+    // minimum of its first run below half the peak, well above the counter's value
+    for t in &held {
+        assert!(t[0] < 0.0 && t[0] > -30_000.0, "{}", t[0]);
+        assert!(t[1] >= t[0], "{} {}", t[0], t[1]);
+    }
 }

@@ -40,6 +40,10 @@ pub struct DspParams {
     /// Antenna centre frequency, Hz, overriding the traces' own (default: the traces'). Dewow
     /// and the band-pass are tied to it.
     pub center_frequency_hz: Option<f64>,
+    /// Replace the first N samples of every raw trace by sample N before anything else
+    /// (default 0). GSSI DZT files keep a scan counter and a mark word in samples 0 and 1:
+    /// use 2 for them.
+    pub hold_first_samples: usize,
     /// Averaging of consecutive raw traces before the filters (default off).
     pub stack: Option<StackParams>,
     /// Dewow (default on).
@@ -57,6 +61,7 @@ impl Default for DspParams {
         let c = ChainParams::default();
         Self {
             center_frequency_hz: None,
+            hold_first_samples: 0,
             stack: c.stack,
             dewow: c.dewow,
             zero_time: c.zero_time,
@@ -93,6 +98,16 @@ pub struct DspStage {
 
 impl DspStage {
     fn build(&mut self, t: &Trace<'_>) -> std::result::Result<(), StageError> {
+        if self.params.hold_first_samples >= t.len() {
+            return Err(param_error(Error::Param {
+                key: "hold_first_samples".into(),
+                message: format!(
+                    "{} is not below the first trace's {} samples",
+                    self.params.hold_first_samples,
+                    t.len()
+                ),
+            }));
+        }
         let fc = self.params.center_frequency_hz.unwrap_or(t.center_frequency_hz);
         let chain = TraceChain::new(&self.params.chain(), t.len(), t.sample_interval_ns, fc).map_err(|e| match e {
             e @ Error::Param { .. } => param_error(e),
@@ -160,6 +175,11 @@ impl Stage for DspStage {
             Samples::F32(s) => self.scratch.extend_from_slice(s),
             Samples::I16(s) => self.scratch.extend(s.iter().map(|&v| f32::from(v))),
             Samples::I32(s) => self.scratch.extend(s.iter().map(|&v| v as f32)),
+        }
+        let hold = self.params.hold_first_samples;
+        if hold > 0 && hold < self.scratch.len() {
+            let v = self.scratch[hold];
+            self.scratch[..hold].fill(v);
         }
         let Some(chain) = self.chain.as_mut() else {
             return Ok(());
