@@ -285,10 +285,14 @@ pub fn stages() -> Result<ExitCode> {
                 }
             }
         }
-        if let Ok(outputs) = s.outputs(&serde_json::Value::Null) {
-            for o in outputs {
-                writeln!(out, "    out: {} ({})", o.name, o.msg_type)?;
+        match s.outputs(&serde_json::Value::Null) {
+            Ok(outputs) => {
+                for o in outputs {
+                    writeln!(out, "    out: {} ({})", o.name, o.msg_type)?;
+                }
             }
+            // required parameters (a source's file): `gprflow check` on a graph lists them
+            Err(e) => writeln!(out, "    out: known once its parameters are given ({e})")?,
         }
     }
     Ok(ExitCode::SUCCESS)
