@@ -985,6 +985,20 @@ fn estimate_tracks_a_simulated_garage_loop_from_imu_and_wheel() {
     assert!(ate < 0.4 && aligned < 0.15, "ATE {ate} m, aligned {aligned} m");
 }
 
+/// Launches `graph` with `--set` assignments, recorded to `dir/run.mcap`; checks that it
+/// succeeded and returns the recorded payloads per topic and the launcher's output.
+fn launch_recorded(dir: &Path, graph: &str, sets: &[String]) -> (BTreeMap<String, Vec<Vec<u8>>>, Output) {
+    let rec = dir.join("run.mcap");
+    let mut args = vec!["launch".to_owned(), graph.to_owned()];
+    for s in sets {
+        args.extend(["--set".to_owned(), s.clone()]);
+    }
+    args.extend(["--record".to_owned(), rec.to_str().expect("utf8").to_owned()]);
+    let o = gprflow(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{graph}: {}", stderr(&o));
+    (payloads(&rec), o)
+}
+
 fn decode_all<'a, M: gprflow::msg::CdrDecode<'a>>(msgs: &'a [Vec<u8>]) -> Vec<M> {
     msgs.iter()
         .map(|p| gprflow::msg::decode::<M>(p).expect("decodes"))
@@ -995,18 +1009,8 @@ fn decode_all<'a, M: gprflow::msg::CdrDecode<'a>>(msgs: &'a [Vec<u8>]) -> Vec<M>
 fn submap_pipeline_resamples_a_simulated_run_by_wheel_distance() {
     use gprflow::msg::Submap;
     let dir = tempfile::tempdir().expect("tempdir");
-    let rec = dir.path().join("submaps.mcap");
     // a submap every 0.1 m, not 0.02 m: a fifth of the data to write and read
-    let o = gprflow(&[
-        "launch",
-        "graphs/submaps.yaml",
-        "--set",
-        "spacing_m=0.1",
-        "--record",
-        rec.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let p = payloads(&rec);
+    let (p, _) = launch_recorded(dir.path(), "graphs/submaps.yaml", &["spacing_m=0.1".into()]);
     let raw: Vec<Submap> = decode_all(&p["/submap/submap"]);
     let filtered: Vec<Submap> = decode_all(&p["/filter/submap"]);
     // 60 s, 27 m with three corners: submaps every 0.1 m once 3 m are covered, none across
@@ -1243,15 +1247,7 @@ fn bad_radar_files_get_clear_errors_and_lose_no_complete_trace() {
 fn lgpr_sweep_chain_turns_simulated_sweeps_into_high_passed_range_profiles() {
     use gprflow::msg::Sweep;
     let dir = tempfile::tempdir().expect("tempdir");
-    let rec = dir.path().join("lgpr.mcap");
-    let o = gprflow(&[
-        "launch",
-        "graphs/lgpr-sweeps.yaml",
-        "--record",
-        rec.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let p = payloads(&rec);
+    let (p, _) = launch_recorded(dir.path(), "graphs/lgpr-sweeps.yaml", &[]);
     let out: Vec<Sweep> = decode_all(&p["/lgpr/sweep"]);
     // every one of the 5 s x 126 Hz sweeps, none waiting on the factory calibration
     assert_eq!(out.len(), 631);
@@ -1282,22 +1278,13 @@ fn lgpr_sweep_chain_turns_simulated_sweeps_into_high_passed_range_profiles() {
 fn a_real_dzt_line_runs_through_the_submap_pipeline() {
     use gprflow::msg::Submap;
     let dir = tempfile::tempdir().expect("tempdir");
-    let rec = dir.path().join("dzt.mcap");
     let dzt = real_gpr("GSSI_FILE____032.DZT");
-    let o = gprflow(&[
-        "launch",
-        "graphs/submaps.yaml",
-        "--set",
-        &format!("recording={}", dzt.display()),
-        "--set",
-        "spacing_m=0.5",
-        "--set",
-        "hold_first_samples=2",
-        "--record",
-        rec.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let p = payloads(&rec);
+    let sets = [
+        format!("recording={}", dzt.display()),
+        "spacing_m=0.5".into(),
+        "hold_first_samples=2".into(),
+    ];
+    let (p, _) = launch_recorded(dir.path(), "graphs/submaps.yaml", &sets);
     let maps: Vec<Submap> = decode_all(&p["/filter/submap"]);
     // 1040 scans at 50 scans/m: 20.78 m of line, a submap every 0.5 m after the first 3 m
     // (traces 0.02 m apart fill every 0.015 m column but one in four: the rest interpolated)
@@ -1364,14 +1351,7 @@ fn unusable_traces_are_dropped_counted_and_named_while_the_run_goes_on() {
             + "\" } }\n  dsp: { stage: dsp, inputs: { trace: ingest/gpr } }\n  submap: { stage: submap, inputs: { trace: dsp/trace, wheel: ingest/wheel } }\nrecord: { topics: [\"dsp/*\", \"submap/*\"] }\n",
     )
     .expect("graph");
-    let out = dir.path().join("out.mcap");
-    let o = gprflow(&[
-        "launch",
-        graph.to_str().expect("utf8"),
-        "--record",
-        out.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (p, o) = launch_recorded(dir.path(), graph.to_str().expect("utf8"), &[]);
     let err = stderr(&o);
     assert!(
         err.contains("topic=\"ingest/gpr\" seq=50") && err.contains("trace: value 5 is not finite"),
@@ -1382,7 +1362,6 @@ fn unusable_traces_are_dropped_counted_and_named_while_the_run_goes_on() {
         "{err}"
     );
     assert!(err.contains("dsp: messages dropped as unusable messages=2"), "{err}");
-    let p = payloads(&out);
     assert_eq!(p["/dsp/trace"].len(), 398);
     let maps: Vec<Submap> = decode_all(&p["/submap/submap"]);
     // 3.98 m of travel: submaps from 3 m on, every 0.02 m
@@ -1396,7 +1375,8 @@ fn holding_the_dzt_counter_samples_lets_zero_time_find_the_first_negative_peak()
     let dzt = real_gpr("GSSI_FILE____032.DZT");
     let run = |hold: usize| -> Vec<Vec<f32>> {
         let graph = dir.path().join(format!("hold{hold}.yaml"));
-        let rec = dir.path().join(format!("hold{hold}.mcap"));
+        let run_dir = dir.path().join(format!("hold{hold}"));
+        std::fs::create_dir(&run_dir).expect("mkdir");
         std::fs::write(
             &graph,
             format!(
@@ -1405,14 +1385,7 @@ fn holding_the_dzt_counter_samples_lets_zero_time_find_the_first_negative_peak()
             ),
         )
         .expect("graph");
-        let o = gprflow(&[
-            "launch",
-            graph.to_str().expect("utf8"),
-            "--record",
-            rec.to_str().expect("utf8"),
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-        let p = payloads(&rec);
+        let (p, _) = launch_recorded(&run_dir, graph.to_str().expect("utf8"), &[]);
         decode_all::<Trace>(&p["/dsp/trace"])
             .iter()
             .map(|t| t.samples_f32.to_vec())
