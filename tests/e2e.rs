@@ -827,6 +827,45 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
         "1e9",
     ]);
     assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stdout));
+    // a tolerance file: huge on the trace samples only, so the other topics still differ ...
+    let tol = dir.path().join("tol.yaml");
+    std::fs::write(
+        &tol,
+        "rules:\n  - { topic: \"/gpr/trace\", field: \"samples_i16[]\", abs: 1.0e9 }\n",
+    )
+    .expect("write");
+    let o = gprflow(&[
+        "diff",
+        a.to_str().expect("utf8"),
+        c.to_str().expect("utf8"),
+        "--tolerances",
+        tol.to_str().expect("utf8"),
+        "--json",
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stdout));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("diff json");
+    assert_ne!(report["report"]["first_divergence"]["topic"], "/gpr/trace", "{report}");
+    // ... and huge everywhere, as the flag
+    std::fs::write(&tol, "default: { abs: 1.0e9 }\n").expect("write");
+    let o = gprflow(&[
+        "diff",
+        a.to_str().expect("utf8"),
+        c.to_str().expect("utf8"),
+        "--tolerances",
+        tol.to_str().expect("utf8"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stdout));
+    // a bad tolerance file: exit 2 naming it
+    std::fs::write(&tol, "default: { abs: -1 }\n").expect("write");
+    let o = gprflow(&[
+        "diff",
+        a.to_str().expect("utf8"),
+        c.to_str().expect("utf8"),
+        "--tolerances",
+        tol.to_str().expect("utf8"),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("tol.yaml: default"), "{}", stderr(&o));
     // fewer messages: a regression even with tolerances
     let short = dir.path().join("short.mcap");
     let o = gprflow(&[

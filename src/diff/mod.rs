@@ -16,12 +16,99 @@ use crate::record::{RecordError, Recording};
 
 /// Tolerances: a numeric difference passes when it is within `abs` or within `rel`
 /// (relative to the larger magnitude).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct Tolerance {
     /// Absolute tolerance.
     pub abs: f64,
     /// Relative tolerance.
     pub rel: f64,
+}
+
+/// Tolerances per topic and field, as a tolerance file gives them (YAML):
+///
+/// ```yaml
+/// default: { abs: 0.0, rel: 0.0 }
+/// rules:
+///   - { topic: "/estimate/*", field: "world_from_body.pose.position.*", abs: 1.0e-6 }
+///   - { topic: "/filter/submap", field: "pixels[]", rel: 1.0e-5 }
+/// ```
+///
+/// The first rule whose `topic` and `field` globs (`*` matches anything) match a numeric field
+/// applies, else `default`. Fields are named as in the report: array indices folded
+/// (`pixels[]`), nested fields joined by `.`.
+#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Tolerances {
+    /// Tolerance of fields no rule names (default exact).
+    #[serde(default)]
+    pub default: Tolerance,
+    /// Rules, first match wins.
+    #[serde(default)]
+    pub rules: Vec<ToleranceRule>,
+}
+
+/// One rule of [`Tolerances`].
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToleranceRule {
+    /// Topic glob (default `*`).
+    #[serde(default = "any")]
+    pub topic: String,
+    /// Field glob over folded paths (default `*`).
+    #[serde(default = "any")]
+    pub field: String,
+    /// Absolute tolerance (default 0).
+    #[serde(default)]
+    pub abs: f64,
+    /// Relative tolerance (default 0).
+    #[serde(default)]
+    pub rel: f64,
+}
+
+fn any() -> String {
+    "*".to_owned()
+}
+
+impl Tolerances {
+    /// The same tolerance for every field.
+    pub fn uniform(tol: Tolerance) -> Self {
+        Self {
+            default: tol,
+            rules: Vec::new(),
+        }
+    }
+
+    /// Reads a tolerance file; errors name the file (and the line, where the parser says).
+    ///
+    /// # Errors
+    /// Unreadable file, YAML that is not a tolerance file, or a negative or non-finite value.
+    pub fn from_file(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let t: Self = serde_saphyr::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let bad = |v: f64| !(v.is_finite() && v >= 0.0);
+        if bad(t.default.abs) || bad(t.default.rel) {
+            return Err(format!(
+                "{}: default: tolerances must be finite and >= 0",
+                path.display()
+            ));
+        }
+        if let Some(i) = t.rules.iter().position(|r| bad(r.abs) || bad(r.rel)) {
+            return Err(format!(
+                "{}: rules[{i}]: tolerances must be finite and >= 0",
+                path.display()
+            ));
+        }
+        Ok(t)
+    }
+
+    /// The tolerance of `field` (folded path) on `topic`.
+    pub fn for_field(&self, topic: &str, field: &str) -> Tolerance {
+        self.rules
+            .iter()
+            .find(|r| crate::graph::glob_matches(&r.topic, topic) && crate::graph::glob_matches(&r.field, field))
+            .map_or(self.default, |r| Tolerance { abs: r.abs, rel: r.rel })
+    }
 }
 
 impl Default for Tolerance {
@@ -156,7 +243,7 @@ fn fold(path: &str) -> String {
 }
 
 struct Walk<'a> {
-    tol: Tolerance,
+    tol: &'a Tolerances,
     topic: &'a mut TopicDiff,
     first_beyond: Option<(String, Value, Value)>,
 }
@@ -180,11 +267,13 @@ impl Walk<'_> {
                 }
                 let abs = (x - y).abs();
                 let rel = abs / x.abs().max(y.abs());
-                let stats = self.topic.fields.entry(fold(path)).or_default();
+                let field = fold(path);
+                let tol = self.tol.for_field(&self.topic.topic, &field);
+                let stats = self.topic.fields.entry(field).or_default();
                 stats.differing += 1;
                 stats.max_abs = stats.max_abs.max(abs);
                 stats.max_rel = stats.max_rel.max(rel);
-                if abs > self.tol.abs && rel > self.tol.rel {
+                if abs > tol.abs && rel > tol.rel {
                     stats.beyond_tolerance += 1;
                     if self.first_beyond.is_none() {
                         self.first_beyond = Some((path.to_owned(), a.clone(), b.clone()));
@@ -237,6 +326,14 @@ impl Walk<'_> {
 /// # Errors
 /// None beyond what opening did; kept fallible for corrupt files found while reading.
 pub fn diff(a: &Recording, b: &Recording, tol: Tolerance) -> Result<DiffReport, RecordError> {
+    diff_with(a, b, &Tolerances::uniform(tol))
+}
+
+/// Compares recordings `a` and `b` with tolerances per topic and field.
+///
+/// # Errors
+/// As [`diff`].
+pub fn diff_with(a: &Recording, b: &Recording, tol: &Tolerances) -> Result<DiffReport, RecordError> {
     let (sa, sb) = (load(a), load(b));
     let mut report = DiffReport::default();
     let mut topics: Vec<&String> = sa.messages.keys().chain(sb.messages.keys()).collect();
@@ -318,7 +415,14 @@ mod tests {
     use serde_json::json;
 
     fn walk(a: Value, b: Value, tol: Tolerance) -> (TopicDiff, Option<(String, Value, Value)>) {
-        let mut td = TopicDiff::default();
+        walk_with(a, b, &Tolerances::uniform(tol), "/t")
+    }
+
+    fn walk_with(a: Value, b: Value, tol: &Tolerances, topic: &str) -> (TopicDiff, Option<(String, Value, Value)>) {
+        let mut td = TopicDiff {
+            topic: topic.to_owned(),
+            ..TopicDiff::default()
+        };
         let mut w = Walk {
             tol,
             topic: &mut td,
@@ -352,5 +456,39 @@ mod tests {
         assert_eq!(td.structural.get("a.len"), Some(&1));
         assert_eq!(td.structural.get("s"), Some(&1));
         assert_eq!(first.map(|f| f.0), Some("a.len".to_owned()));
+    }
+
+    #[test]
+    fn a_tolerance_file_sets_tolerances_per_topic_and_field() {
+        let dir = std::env::temp_dir().join(format!("gprflow-tol-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("tempdir");
+        let file = dir.join("tol.yaml");
+        std::fs::write(
+            &file,
+            "default: { abs: 0.0 }\nrules:\n  - { topic: \"/est*\", field: \"samples[]\", abs: 0.6 }\n",
+        )
+        .expect("write");
+        let t = Tolerances::from_file(&file).expect("a tolerance file");
+        let a = json!({"samples": [1.0, 2.0], "x": 1.0});
+        let b = json!({"samples": [1.0, 2.5], "x": 1.0});
+        // the rule covers samples on /estimate: within tolerance
+        let (td, first) = walk_with(a.clone(), b.clone(), &t, "/estimate/state");
+        assert_eq!(td.fields["samples[]"].beyond_tolerance, 0);
+        assert!(first.is_none());
+        // another topic takes the exact default
+        let (_, first) = walk_with(a.clone(), b.clone(), &t, "/other");
+        assert_eq!(first.map(|f| f.0), Some("samples[1]".to_owned()));
+        // a field the rule does not name takes the default too
+        let c = json!({"samples": [1.0, 2.0], "x": 1.1});
+        let (_, first) = walk_with(a, c, &t, "/estimate/state");
+        assert_eq!(first.map(|f| f.0), Some("x".to_owned()));
+        // errors name the file
+        std::fs::write(&file, "rules:\n  - { topic: \"*\", abs: -1 }\n").expect("write");
+        let e = Tolerances::from_file(&file).expect_err("negative");
+        assert!(e.contains("tol.yaml: rules[0]"), "{e}");
+        std::fs::write(&file, "rulez: []\n").expect("write");
+        let e = Tolerances::from_file(&file).expect_err("unknown key");
+        assert!(e.contains("tol.yaml") && e.contains("rulez"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
-use gprflow::diff::{DiffReport, Tolerance, diff};
+use gprflow::diff::{DiffReport, Tolerances, diff_with};
 use gprflow::eval::{self, PoseTopicKind, Stats, Trajectory, pose_topics};
 use gprflow::msg::{HoughLine, LineMap};
 use gprflow::record::Recording;
@@ -431,9 +431,9 @@ pub struct TrajectoryDiff {
 ///
 /// # Errors
 /// Unreadable recordings (the caller exits 2).
-pub fn diff_command(a: &Path, b: &Path, tol: Tolerance, json: bool) -> Result<ExitCode> {
+pub fn diff_command(a: &Path, b: &Path, tol: &Tolerances, json: bool) -> Result<ExitCode> {
     let (ra, rb) = (Recording::open(a)?, Recording::open(b)?);
-    let report = diff(&ra, &rb, tol)?;
+    let report = diff_with(&ra, &rb, tol)?;
     // trajectories: every pose topic in both recordings
     let (ta, tb) = (pose_topics(&ra), pose_topics(&rb));
     let truth_a = Trajectory::from_recording(&ra, TRUTH_TOPIC).ok();

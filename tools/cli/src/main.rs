@@ -226,6 +226,10 @@ enum Command {
         /// Relative tolerance for numeric fields.
         #[arg(long, default_value_t = 0.0)]
         rel_tol: f64,
+        /// Tolerance file instead of the flags (YAML: `default: {abs, rel}` and
+        /// `rules: [{topic, field, abs, rel}]`, globs, first match wins).
+        #[arg(long, conflicts_with_all = ["abs_tol", "rel_tol"])]
+        tolerances: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -354,16 +358,22 @@ fn main() -> ExitCode {
             b,
             abs_tol,
             rel_tol,
+            tolerances,
             json,
-        } => gprflow_cli::eval::diff_command(
-            &a,
-            &b,
-            gprflow::diff::Tolerance {
-                abs: abs_tol,
-                rel: rel_tol,
-            },
-            json,
-        ),
+        } => match tolerances {
+            Some(file) => gprflow::diff::Tolerances::from_file(&file)
+                .map_err(anyhow::Error::msg)
+                .and_then(|t| gprflow_cli::eval::diff_command(&a, &b, &t, json)),
+            None => gprflow_cli::eval::diff_command(
+                &a,
+                &b,
+                &gprflow::diff::Tolerances::uniform(gprflow::diff::Tolerance {
+                    abs: abs_tol,
+                    rel: rel_tol,
+                }),
+                json,
+            ),
+        },
         Command::Sim {
             scenario,
             output,
