@@ -119,12 +119,26 @@ fn a_users_own_executable_speaks_the_same_bus() {
     );
 }
 
+/// Waits until the recorder has its file open: signal a run only then (on a loaded machine
+/// start-up can take longer than any fixed wait).
+fn wait_for_recorder(rec: &Path) {
+    let start = Instant::now();
+    while !rec.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "the recorder never opened its file"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 #[test]
 fn sigint_stops_every_stage_and_finalises_the_recording() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = dir.path().join("interrupted.mcap");
     let run = LongRun::start(&rec);
     run.pid_of("gain");
+    wait_for_recorder(&rec);
     std::thread::sleep(Duration::from_millis(500));
     kill(run.child.id(), "-INT");
     let id = run.id.clone();
@@ -507,16 +521,7 @@ fn killed_stage_stops_the_run_and_leaves_nothing_behind() {
     let rec = dir.path().join("killed.mcap");
     let run = LongRun::start(&rec);
     let gain = run.pid_of("gain");
-    // kill only once the recorder has its file open (on a loaded machine start-up can take
-    // longer than any fixed wait), and messages have flowed for a while
-    let start = Instant::now();
-    while !rec.exists() {
-        assert!(
-            start.elapsed() < Duration::from_secs(20),
-            "the recorder never opened its file"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    wait_for_recorder(&rec);
     std::thread::sleep(Duration::from_millis(300));
     kill(gain, "-9");
     let id = run.id.clone();

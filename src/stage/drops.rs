@@ -34,11 +34,6 @@ impl Drops {
         }
     }
 
-    /// Counts one dropped message without logging it (for a reason already logged).
-    pub fn count_one(&mut self) {
-        self.count += 1;
-    }
-
     /// Messages dropped so far.
     pub fn count(&self) -> u64 {
         self.count

@@ -343,11 +343,8 @@ impl Stage for DspSubmapStage {
     }
 
     fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> std::result::Result<(), StageError> {
-        let m: Submap = input.decode()?;
-        let mut m = Submap {
-            pixels: Cow::Owned(m.pixels.into_owned()),
-            ..m
-        };
+        // `filter` takes the pixels over (`Cow::to_mut`: one copy out of the shared memory)
+        let mut m: Submap = input.decode()?;
         match self.filter(&mut m) {
             Ok(()) => {}
             Err(e @ (Error::Size { .. } | Error::NonFinite { .. })) => {

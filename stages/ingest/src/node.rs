@@ -86,7 +86,7 @@ pub struct TopicMap {
     pub truth: Option<String>,
 }
 
-/// The outputs, in port order.
+/// The outputs; the declaration order is the output index (`port as usize`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Port {
     /// Raw traces.
@@ -503,7 +503,7 @@ impl Stage for IngestStage {
         let messages = loaded
             .messages
             .into_iter()
-            .map(|(port, stamp, data)| (Port::ALL.iter().position(|p| *p == port).unwrap_or(0), stamp, data))
+            .map(|(port, stamp, data)| (port as usize, stamp, data))
             .collect();
         Ok(Self {
             player: Player::new(messages, params.pace, params.speed),
@@ -569,6 +569,13 @@ mod tests {
             "{:?}",
             l.dropped
         );
+    }
+
+    #[test]
+    fn a_ports_discriminant_is_its_output_index() {
+        for (i, p) in Port::ALL.iter().enumerate() {
+            assert_eq!(*p as usize, i, "{}", p.name());
+        }
     }
 
     #[test]

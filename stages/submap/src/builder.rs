@@ -452,10 +452,8 @@ fn interpolate(a: Option<&WheelSample>, b: &WheelSample, stamp_ns: i64) -> Wheel
         return WheelSample { stamp_ns, ..*b };
     };
     if b.stamp_ns <= a.stamp_ns || stamp_ns <= a.stamp_ns {
-        return WheelSample {
-            stamp_ns,
-            ..*a.max_by_stamp(b, stamp_ns)
-        };
+        let nearest = if stamp_ns <= a.stamp_ns { a } else { b };
+        return WheelSample { stamp_ns, ..*nearest };
     }
     let w = (stamp_ns - a.stamp_ns) as f64 / (b.stamp_ns - a.stamp_ns) as f64;
     let lerp = |x: f64, y: f64| x + w * (y - x);
@@ -470,13 +468,6 @@ fn interpolate(a: Option<&WheelSample>, b: &WheelSample, stamp_ns: i64) -> Wheel
             y_m: lerp(a.pose.y_m, b.pose.y_m),
             yaw_rad: lerp(a.pose.yaw_rad, b.pose.yaw_rad),
         },
-    }
-}
-
-impl WheelSample {
-    /// `self` when `stamp_ns` is at or before it, else `other`.
-    fn max_by_stamp<'a>(&'a self, other: &'a Self, stamp_ns: i64) -> &'a Self {
-        if stamp_ns <= self.stamp_ns { self } else { other }
     }
 }
 
