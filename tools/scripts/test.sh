@@ -7,6 +7,8 @@ cd "$(dirname "$0")/../.."
 tools/peer/setup-venv.sh
 # plot labels (gprflow eval --plot) need a font
 tools/scripts/ensure-font.sh
+# the learned registration model runs on ONNX Runtime (libonnxruntime from the PyPI wheel)
+tools/scripts/ensure-onnxruntime.sh
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
 # end-to-end tests also run the workspace's other binaries (a user's exec stage)
