@@ -62,7 +62,7 @@ pub struct SubmapView<'a> {
 }
 
 impl SubmapView<'_> {
-    fn check(&self, what: &str) -> Result<()> {
+    pub(crate) fn check(&self, what: &str) -> Result<()> {
         if self.rows == 0 || self.cols == 0 || self.pixels.len() != self.rows * self.cols {
             return Err(Error::Shape(format!(
                 "{what}: {} pixels for {} x {}",
