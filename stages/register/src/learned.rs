@@ -393,19 +393,23 @@ impl CorrVector {
 /// Per channel, with `R` and `Q` the reference's and the query's `h x w` images, the shared
 /// block of a shift `T` is the reference's columns `c + T` and the query's columns `c` for `c`
 /// in `[max(0, -T), min(w, w - T))`. Its Pearson correlation needs `Σ AB`, `Σ A`, `Σ A²`,
-/// `Σ B`, `Σ B²`. The four single sums come from column prefix sums; `Σ AB` is the sum, over
-/// rows, of the dot product of the two shifted row segments (the `T`-th diagonal of the column
-/// cross-product matrix `D[i][j] = Σ_rows R[:, i] Q[:, j]`). Then
-/// `r = (Σ AB - Σ A Σ B / N) / sqrt((Σ A² - (Σ A)² / N) (Σ B² - (Σ B)² / N))`, in f64.
+/// `Σ B`, `Σ B²` over the block. The four single sums are differences of column prefix sums.
+/// `Σ AB` is the `T`-th diagonal sum of the column cross-product matrix
+/// `D[i][j] = Σ_rows R[row][i] Q[row][j]` (`i - j = T`), computed in `4 x 8` tiles (only those
+/// that touch a shift tried) and added into the diagonals tile by tile, never stored whole. Then
+/// `r = (Σ AB - Σ A Σ B / N) / sqrt((Σ A² - (Σ A)² / N) (Σ B² - (Σ B)² / N))`, in f64 (f32
+/// products are exact in f64; the sums round as in any f64 order).
 #[derive(Debug, Clone, Default)]
 pub struct Correlator {
-    /// The reference's features as f64.
+    /// The reference's features as f64 in panels of [`TILE_I`] columns (see [`pack_panels`]).
     reference: Vec<f64>,
-    /// The query's features as f64.
+    /// The query's features as f64 in panels of [`TILE_J`] columns.
     query: Vec<f64>,
     /// Column prefix sums of one channel: reference `Σ`, reference `Σ x²`, query `Σ`, query
     /// `Σ x²`, `w + 1` each.
     prefix: Vec<f64>,
+    /// `Σ AB` of one channel per shift tried, in increasing shift.
+    products: Vec<f64>,
     /// `r(T)` of one channel for the shifts tried, in increasing shift.
     curve: Vec<f64>,
 }
@@ -439,58 +443,100 @@ impl Correlator {
                 reference.channels, reference.rows, reference.cols, query.channels, query.rows, query.cols
             )));
         }
-        to_f64(reference, "reference", &mut self.reference)?;
-        to_f64(query, "query", &mut self.query)?;
+        check_finite(reference, "reference")?;
+        check_finite(query, "query")?;
         let (channels, h, w) = (reference.channels, reference.rows, reference.cols);
-        let t_max = params.max_shift_cols(w);
+        let shape = ChannelShape {
+            h,
+            w,
+            t_max: params.max_shift_cols(w),
+        };
+        pack_panels(reference, TILE_I, &mut self.reference);
+        pack_panels(query, TILE_J, &mut self.query);
+        let (r_block, q_block) = (w.div_ceil(TILE_I) * TILE_I * h, w.div_ceil(TILE_J) * TILE_J * h);
         let mut values = vec![0.0; 2 * channels];
         for k in 0..channels {
-            let r = &self.reference[k * h * w..(k + 1) * h * w];
-            let q = &self.query[k * h * w..(k + 1) * h * w];
-            channel_curve(r, q, h, w, t_max, &mut self.prefix, &mut self.curve);
-            let (tau_cols, peak) = refined_peak(&self.curve, t_max);
+            let r_panels = &self.reference[k * r_block..(k + 1) * r_block];
+            let q_panels = &self.query[k * q_block..(k + 1) * q_block];
+            shifted_products(r_panels, q_panels, shape, &mut self.products);
+            column_prefix_sums(reference.channel(k), query.channel(k), w, &mut self.prefix);
+            channel_curve(shape, &self.products, &self.prefix, &mut self.curve);
+            let (tau_cols, peak) = refined_peak(&self.curve, shape.t_max);
             values[k] = tau_cols * params.column_m;
             values[channels + k] = peak;
         }
         Ok(CorrVector {
             values,
-            max_shift_cols: t_max,
+            max_shift_cols: shape.t_max,
         })
     }
 }
 
-/// `features` as f64 into `out`; a NaN or infinite feature is an error.
-fn to_f64(features: &Features, what: &str, out: &mut Vec<f64>) -> Result<()> {
-    if let Some(i) = features.data.iter().position(|v| !v.is_finite()) {
-        let n = features.rows * features.cols;
-        return Err(Error::Shape(format!(
-            "{what} features: channel {}, row {}, col {} is {}",
-            i / n,
-            (i % n) / features.cols,
-            i % features.cols,
-            features.data[i]
-        )));
-    }
-    out.clear();
-    out.extend(features.data.iter().map(|&v| f64::from(v)));
-    Ok(())
+/// Rows, columns and largest shift of one channel's images.
+#[derive(Debug, Clone, Copy)]
+struct ChannelShape {
+    h: usize,
+    w: usize,
+    t_max: usize,
 }
 
-/// `r(T)` for `T` in `-t_max..=t_max` of one channel (`r`, `q`: `h x w`, row-major) into
-/// `curve`; `prefix` is a work buffer.
-fn channel_curve(r: &[f64], q: &[f64], h: usize, w: usize, t_max: usize, prefix: &mut Vec<f64>, curve: &mut Vec<f64>) {
+/// A NaN or infinite feature is an error naming it.
+fn check_finite(features: &Features, what: &str) -> Result<()> {
+    // a branch-free pass first (it vectorises); the search only when something is wrong
+    if !features.data.iter().fold(false, |bad, v| bad | !v.is_finite()) {
+        return Ok(());
+    }
+    let i = features.data.iter().position(|v| !v.is_finite()).unwrap_or(0);
+    let n = features.rows * features.cols;
+    Err(Error::Shape(format!(
+        "{what} features: channel {}, row {}, col {} is {}",
+        i / n,
+        (i % n) / features.cols,
+        i % features.cols,
+        features.data[i]
+    )))
+}
+
+/// `features` as f64 in panels of `width` columns into `out`: per channel, per panel `p`,
+/// per row, the columns `p * width ..` (zeros past the last column), so that a tile's rows are
+/// contiguous.
+fn pack_panels(features: &Features, width: usize, out: &mut Vec<f64>) {
+    let (h, w) = (features.rows, features.cols);
+    let panels = w.div_ceil(width);
+    out.clear();
+    out.resize(features.channels * panels * h * width, 0.0);
+    for (channel, dst) in features
+        .data
+        .chunks_exact(h * w)
+        .zip(out.chunks_exact_mut(panels * h * width))
+    {
+        for (p, panel) in dst.chunks_exact_mut(h * width).enumerate() {
+            let (c0, c1) = (p * width, ((p + 1) * width).min(w));
+            for (row, d) in channel.chunks_exact(w).zip(panel.chunks_exact_mut(width)) {
+                for (d, &v) in d.iter_mut().zip(&row[c0..c1]) {
+                    *d = f64::from(v);
+                }
+            }
+        }
+    }
+}
+
+/// Column prefix sums of one channel (`r`, `q`: `h x w`, row-major) into `prefix`: reference
+/// `Σ`, reference `Σ x²`, query `Σ`, query `Σ x²`, `w + 1` each, entry `c` summing columns
+/// `< c`.
+fn column_prefix_sums(r: &[f32], q: &[f32], w: usize, prefix: &mut Vec<f64>) {
     prefix.clear();
     prefix.resize(4 * (w + 1), 0.0);
     let (pr, rest) = prefix.split_at_mut(w + 1);
     let (prr, rest) = rest.split_at_mut(w + 1);
     let (pq, pqq) = rest.split_at_mut(w + 1);
-    for row in 0..h {
-        let (rr, qr) = (&r[row * w..(row + 1) * w], &q[row * w..(row + 1) * w]);
+    for (rr, qr) in r.chunks_exact(w).zip(q.chunks_exact(w)) {
         for c in 0..w {
-            pr[c + 1] += rr[c];
-            prr[c + 1] += rr[c] * rr[c];
-            pq[c + 1] += qr[c];
-            pqq[c + 1] += qr[c] * qr[c];
+            let (a, b) = (f64::from(rr[c]), f64::from(qr[c]));
+            pr[c + 1] += a;
+            prr[c + 1] += a * a;
+            pq[c + 1] += b;
+            pqq[c + 1] += b * b;
         }
     }
     for c in 0..w {
@@ -499,22 +545,23 @@ fn channel_curve(r: &[f64], q: &[f64], h: usize, w: usize, t_max: usize, prefix:
         pq[c + 1] += pq[c];
         pqq[c + 1] += pqq[c];
     }
+}
+
+/// `r(T)` for `T` in `-t_max..=t_max` of one channel into `curve`, from `products` (`Σ AB` per
+/// shift) and `prefix` ([`column_prefix_sums`]).
+fn channel_curve(shape: ChannelShape, products: &[f64], prefix: &[f64], curve: &mut Vec<f64>) {
+    let ChannelShape { h, w, t_max } = shape;
+    let (pr, rest) = prefix.split_at(w + 1);
+    let (prr, rest) = rest.split_at(w + 1);
+    let (pq, pqq) = rest.split_at(w + 1);
     curve.clear();
     let t_max = t_max as isize;
-    for t in -t_max..=t_max {
+    for (t, &sab) in (-t_max..=t_max).zip(products) {
         // query columns [q0, q1) over reference columns [q0 + t, q1 + t)
         let q0 = (-t).max(0) as usize;
         let q1 = (w as isize - t.max(0)) as usize;
         let (r0, r1) = ((q0 as isize + t) as usize, (q1 as isize + t) as usize);
-        let n = q1 - q0;
-        let mut acc = [0.0f64; LANES];
-        for row in 0..h {
-            let a = &r[row * w + r0..row * w + r0 + n];
-            let b = &q[row * w + q0..row * w + q1];
-            dot_accumulate(a, b, &mut acc);
-        }
-        let sab: f64 = acc.iter().sum();
-        let count = (h * n) as f64;
+        let count = (h * (q1 - q0)) as f64;
         let (sa, saa) = (pr[r1] - pr[r0], prr[r1] - prr[r0]);
         let (sb, sbb) = (pq[q1] - pq[q0], pqq[q1] - pqq[q0]);
         let var_a = saa - sa * sa / count;
@@ -529,21 +576,75 @@ fn channel_curve(r: &[f64], q: &[f64], h: usize, w: usize, t_max: usize, prefix:
     }
 }
 
-/// Independent partial sums of [`dot_accumulate`] (enough to keep the adders busy).
-const LANES: usize = 8;
+/// Reference columns per tile of `D` (and per reference panel).
+const TILE_I: usize = 4;
 
-/// `acc[l] += Σ a[i] b[i]` over `i = l (mod LANES)`.
-#[inline(always)]
-fn dot_accumulate(a: &[f64], b: &[f64], acc: &mut [f64; LANES]) {
-    let mut ca = a.chunks_exact(LANES);
-    let mut cb = b.chunks_exact(LANES);
-    for (x, y) in (&mut ca).zip(&mut cb) {
-        for l in 0..LANES {
-            acc[l] += x[l] * y[l];
-        }
+/// Query columns per tile of `D` (and per query panel).
+const TILE_J: usize = 8;
+
+/// `Σ AB` of one channel for every shift `-t_max..=t_max` into `out`: the diagonal sums of
+/// `D[i][j] = Σ_rows r[row][i] q[row][j]` over `i - j = T`, from the channel's panels
+/// ([`pack_panels`], [`TILE_I`] and [`TILE_J`] columns). Uses AVX2 and FMA where the CPU has
+/// them (fused multiply-adds: the result may differ from the portable one in the last bit).
+fn shifted_products(r_panels: &[f64], q_panels: &[f64], shape: ChannelShape, out: &mut Vec<f64>) {
+    out.clear();
+    out.resize(2 * shape.t_max + 1, 0.0);
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has AVX2 and FMA, checked just above.
+        unsafe { shifted_products_avx2(r_panels, q_panels, shape, out) };
+        return;
     }
-    for (l, (x, y)) in ca.remainder().iter().zip(cb.remainder()).enumerate() {
-        acc[l] += x * y;
+    shifted_products_with(r_panels, q_panels, shape, out, |a, b, c| a * b + c);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn shifted_products_avx2(r_panels: &[f64], q_panels: &[f64], shape: ChannelShape, out: &mut [f64]) {
+    shifted_products_with(r_panels, q_panels, shape, out, f64::mul_add);
+}
+
+/// [`shifted_products`] with `madd(a, b, c) = a b + c`.
+#[inline(always)]
+fn shifted_products_with(
+    r_panels: &[f64],
+    q_panels: &[f64],
+    shape: ChannelShape,
+    out: &mut [f64],
+    madd: impl Fn(f64, f64, f64) -> f64,
+) {
+    let ChannelShape { h, w, t_max } = shape;
+    let t_max = t_max as isize;
+    for (pi, r_panel) in r_panels.chunks_exact(h * TILE_I).enumerate() {
+        let ib = pi * TILE_I;
+        for (pj, q_panel) in q_panels.chunks_exact(h * TILE_J).enumerate() {
+            let jb = pj * TILE_J;
+            // the tile's shifts i - j span [ib - jb - 7, ib - jb + 3]
+            let (lo, hi) = (
+                ib as isize - (jb + TILE_J - 1) as isize,
+                (ib + TILE_I - 1) as isize - jb as isize,
+            );
+            if hi < -t_max || lo > t_max {
+                continue;
+            }
+            let mut acc = [[0.0f64; TILE_J]; TILE_I];
+            for (ri, qj) in r_panel.chunks_exact(TILE_I).zip(q_panel.chunks_exact(TILE_J)) {
+                for (acc_a, &ra) in acc.iter_mut().zip(ri) {
+                    for (s, &qb) in acc_a.iter_mut().zip(qj) {
+                        *s = madd(ra, qb, *s);
+                    }
+                }
+            }
+            for (a, acc_a) in acc.iter().enumerate() {
+                for (b, &s) in acc_a.iter().enumerate() {
+                    let (i, j) = (ib + a, jb + b);
+                    let t = i as isize - j as isize;
+                    if i < w && j < w && (-t_max..=t_max).contains(&t) {
+                        out[(t + t_max) as usize] += s;
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -1194,6 +1295,23 @@ mod tests {
                     assert!((a - b).abs() <= EXACT, "{k}x{h}x{w} {params:?}: v[{i}] {a} vs {b}");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn the_portable_products_match_the_dispatched_ones() {
+        let (k, h, w) = (1, 9, 37);
+        let (r, q) = (features(k, h, w, 11), features(k, h, w, 12));
+        let shape = ChannelShape { h, w, t_max: 17 };
+        let (mut rp, mut qp) = (Vec::new(), Vec::new());
+        pack_panels(&r, TILE_I, &mut rp);
+        pack_panels(&q, TILE_J, &mut qp);
+        let mut dispatched = Vec::new();
+        shifted_products(&rp, &qp, shape, &mut dispatched);
+        let mut portable = vec![0.0; 2 * 17 + 1];
+        shifted_products_with(&rp, &qp, shape, &mut portable, |a, b, c| a * b + c);
+        for (t, (a, b)) in dispatched.iter().zip(&portable).enumerate() {
+            assert!((a - b).abs() <= 1e-12, "shift {}: {a} vs {b}", t as i64 - 17);
         }
     }
 
