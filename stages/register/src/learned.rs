@@ -284,27 +284,46 @@ impl Encoder {
 /// `x = (S - mean(S)) / (std(S) + 1e-6)` over the whole image (population std, f64), as f32,
 /// into `out`.
 fn standardise(submap: &SubmapView<'_>, out: &mut Vec<f32>) -> Result<()> {
-    if let Some(i) = submap.pixels.iter().position(|p| !p.is_finite()) {
+    let pixels = submap.pixels;
+    let sum = lane_sum(pixels, |p| p);
+    // a NaN or infinite pixel makes the f64 sum so (finite f32 pixels cannot overflow it)
+    if !sum.is_finite() {
+        let i = pixels.iter().position(|p| !p.is_finite()).unwrap_or(0);
         return Err(Error::Pixels {
             index: i,
             row: i / submap.cols,
             col: i % submap.cols,
-            value: submap.pixels[i],
+            value: pixels[i],
         });
     }
-    let n = submap.pixels.len() as f64;
-    let mean = submap.pixels.iter().map(|&p| f64::from(p)).sum::<f64>() / n;
-    let var = submap
-        .pixels
-        .iter()
-        .map(|&p| (f64::from(p) - mean).powi(2))
-        .sum::<f64>()
-        / n;
-    let scale = 1.0 / (var.sqrt() + STANDARDISE_EPSILON);
+    let n = pixels.len() as f64;
+    let mean = sum / n;
+    let var = lane_sum(pixels, |p| (p - mean) * (p - mean)) / n;
+    let scale = var.sqrt() + STANDARDISE_EPSILON;
     out.clear();
-    out.extend(submap.pixels.iter().map(|&p| ((f64::from(p) - mean) * scale) as f32));
+    out.extend(pixels.iter().map(|&p| ((f64::from(p) - mean) / scale) as f32));
     Ok(())
 }
+
+/// `Σ f(x)` over `values` in f64, in [`SUM_LANES`] interleaved partial sums (which vectorise).
+#[inline(always)]
+fn lane_sum(values: &[f32], f: impl Fn(f64) -> f64) -> f64 {
+    let mut acc = [0.0f64; SUM_LANES];
+    let chunks = values.chunks_exact(SUM_LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for (a, &v) in acc.iter_mut().zip(c) {
+            *a += f(f64::from(v));
+        }
+    }
+    for (a, &v) in acc.iter_mut().zip(rest) {
+        *a += f(f64::from(v));
+    }
+    acc.iter().sum()
+}
+
+/// Partial sums of [`lane_sum`].
+const SUM_LANES: usize = 8;
 
 // ---------------------------------------------------------------------------------------------
 // Spatial correlation
