@@ -420,9 +420,10 @@ impl CorrVector {
 /// products are exact in f64; the sums round as in any f64 order).
 #[derive(Debug, Clone, Default)]
 pub struct Correlator {
-    /// The reference's features as f64 in panels of [`TILE_I`] columns (see [`pack_panels`]).
+    /// One channel of the reference as f64 in panels of [`TILE_I`] columns (see
+    /// [`prepare_channel`]).
     reference: Vec<f64>,
-    /// The query's features as f64 in panels of [`TILE_J`] columns.
+    /// One channel of the query as f64 in panels of [`TILE_J`] columns.
     query: Vec<f64>,
     /// Column prefix sums of one channel: reference `Σ`, reference `Σ x²`, query `Σ`, query
     /// `Σ x²`, `w + 1` each.
@@ -462,24 +463,23 @@ impl Correlator {
                 reference.channels, reference.rows, reference.cols, query.channels, query.rows, query.cols
             )));
         }
-        check_finite(reference, "reference")?;
-        check_finite(query, "query")?;
         let (channels, h, w) = (reference.channels, reference.rows, reference.cols);
         let shape = ChannelShape {
             h,
             w,
             t_max: params.max_shift_cols(w),
         };
-        pack_panels(reference, TILE_I, &mut self.reference);
-        pack_panels(query, TILE_J, &mut self.query);
-        let (r_block, q_block) = (w.div_ceil(TILE_I) * TILE_I * h, w.div_ceil(TILE_J) * TILE_J * h);
         let mut values = vec![0.0; 2 * channels];
         for k in 0..channels {
-            let r_panels = &self.reference[k * r_block..(k + 1) * r_block];
-            let q_panels = &self.query[k * q_block..(k + 1) * q_block];
-            shifted_products(r_panels, q_panels, shape, &mut self.products);
-            column_prefix_sums(reference.channel(k), query.channel(k), w, &mut self.prefix);
-            channel_curve(shape, &self.products, &self.prefix, &mut self.curve);
+            self.channel(reference.channel(k), query.channel(k), shape);
+            // a NaN or infinite feature makes its channel's sum of squares so (finite f32 values
+            // cannot overflow it)
+            let (r_squares, q_squares) = (self.prefix[2 * w + 1], self.prefix[4 * w + 3]);
+            for (features, what, total) in [(reference, "reference", r_squares), (query, "query", q_squares)] {
+                if !total.is_finite() {
+                    return Err(non_finite(features, what, k));
+                }
+            }
             let (tau_cols, peak) = refined_peak(&self.curve, shape.t_max);
             values[k] = tau_cols * params.column_m;
             values[channels + k] = peak;
@@ -491,6 +491,60 @@ impl Correlator {
     }
 }
 
+impl Correlator {
+    /// `r(T)` of one channel (`r`, `q`: `h x w`, row-major) into `self.curve`, its column
+    /// prefix sums left in `self.prefix`. Uses AVX2 and FMA where the CPU has them (fused
+    /// multiply-adds: the result may differ from the portable one in the last bit).
+    fn channel(&mut self, r: &[f32], q: &[f32], shape: ChannelShape) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU has AVX2 and FMA, checked just above.
+            unsafe { self.channel_avx2(r, q, shape) };
+            return;
+        }
+        self.channel_with(r, q, shape, |rp, qp, s, out| {
+            shifted_products(rp, qp, s, out, |a, b, c| a * b + c)
+        });
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn channel_avx2(&mut self, r: &[f32], q: &[f32], shape: ChannelShape) {
+        self.channel_with(r, q, shape, |rp, qp, s, out| shifted_products_avx2(rp, qp, s, out));
+    }
+
+    /// [`Correlator::channel`] with `products` for [`shifted_products`].
+    #[inline(always)]
+    fn channel_with(
+        &mut self,
+        r: &[f32],
+        q: &[f32],
+        shape: ChannelShape,
+        products: impl Fn(&[f64], &[f64], ChannelShape, &mut [f64]),
+    ) {
+        let w = shape.w;
+        self.prefix.clear();
+        self.prefix.resize(4 * (w + 1), 0.0);
+        let (r_sums, rest) = self.prefix.split_at_mut(w + 1);
+        let (r_squares, rest) = rest.split_at_mut(w + 1);
+        let (q_sums, q_squares) = rest.split_at_mut(w + 1);
+        prepare_channel::<TILE_I, false>(r, shape, &mut self.reference, r_sums, r_squares);
+        prepare_channel::<TILE_J, true>(q, shape, &mut self.query, q_sums, q_squares);
+        let section = DIAGONALS_PAST_W + 2 * w;
+        self.products.clear();
+        self.products.resize(TILE_I * section, 0.0);
+        products(&self.reference, &self.query, shape, &mut self.products);
+        // the shifts tried, -t_max..=t_max: diagonal t is at t + w + TILE_J - 1 - a of section a
+        let first = w + TILE_J - 1 - shape.t_max;
+        for x in first..first + 2 * shape.t_max + 1 {
+            let sum: f64 = (1..TILE_I).map(|a| self.products[a * section + x - a]).sum();
+            self.products[x] += sum;
+        }
+        let tried = &self.products[first..first + 2 * shape.t_max + 1];
+        channel_curve(shape, tried, &self.prefix, &mut self.curve);
+    }
+}
+
 /// Rows, columns and largest shift of one channel's images.
 #[derive(Debug, Clone, Copy)]
 struct ChannelShape {
@@ -499,75 +553,79 @@ struct ChannelShape {
     t_max: usize,
 }
 
-/// A NaN or infinite feature is an error naming it.
-fn check_finite(features: &Features, what: &str) -> Result<()> {
-    // a branch-free pass first (it vectorises); the search only when something is wrong
-    if !features.data.iter().fold(false, |bad, v| bad | !v.is_finite()) {
-        return Ok(());
-    }
-    let i = features.data.iter().position(|v| !v.is_finite()).unwrap_or(0);
-    let n = features.rows * features.cols;
-    Err(Error::Shape(format!(
-        "{what} features: channel {}, row {}, col {} is {}",
-        i / n,
-        (i % n) / features.cols,
+/// The error naming the first NaN or infinite value of channel `k`.
+fn non_finite(features: &Features, what: &str, k: usize) -> Error {
+    let channel = features.channel(k);
+    let i = channel.iter().position(|v| !v.is_finite()).unwrap_or(0);
+    Error::Shape(format!(
+        "{what} features: channel {k}, row {}, col {} is {}",
+        i / features.cols,
         i % features.cols,
-        features.data[i]
-    )))
+        channel.get(i).copied().unwrap_or(f32::NAN)
+    ))
 }
 
-/// `features` as f64 in panels of `width` columns into `out`: per channel, per panel `p`,
-/// per row, the columns `p * width ..` (zeros past the last column), so that a tile's rows are
-/// contiguous.
-fn pack_panels(features: &Features, width: usize, out: &mut Vec<f64>) {
-    let (h, w) = (features.rows, features.cols);
-    let panels = w.div_ceil(width);
-    out.clear();
-    out.resize(features.channels * panels * h * width, 0.0);
-    for (channel, dst) in features
-        .data
-        .chunks_exact(h * w)
-        .zip(out.chunks_exact_mut(panels * h * width))
-    {
-        for (p, panel) in dst.chunks_exact_mut(h * width).enumerate() {
-            let (c0, c1) = (p * width, ((p + 1) * width).min(w));
-            for (row, d) in channel.chunks_exact(w).zip(panel.chunks_exact_mut(width)) {
-                for (d, &v) in d.iter_mut().zip(&row[c0..c1]) {
-                    *d = f64::from(v);
-                }
+/// One channel's `h x w` image (row-major) as f64 in panels of `W` columns into `panels`: per
+/// panel `p`, per row, the columns `p W .. (p + 1) W` (zeros past the last column; in
+/// decreasing order when `REVERSED`), so that a tile's rows are contiguous; and in the same
+/// pass its column prefix sums of values and of squares into `sums` and `squares` (`w + 1`
+/// each, entry `c` summing the columns `< c`).
+#[inline(always)]
+fn prepare_channel<const W: usize, const REVERSED: bool>(
+    image: &[f32],
+    shape: ChannelShape,
+    panels: &mut Vec<f64>,
+    sums: &mut [f64],
+    squares: &mut [f64],
+) {
+    let ChannelShape { h, w, .. } = shape;
+    panels.clear();
+    panels.resize(w.div_ceil(W) * h * W, 0.0);
+    let (sums, squares) = (&mut sums[1..], &mut squares[1..]);
+    for (row, src) in image.chunks_exact(w).enumerate() {
+        let full = src.chunks_exact(W);
+        let rest = full.remainder();
+        let (sum_full, square_full) = (sums.chunks_exact_mut(W), squares.chunks_exact_mut(W));
+        for (p, (chunk, (sum, square))) in full.zip(sum_full.zip(square_full)).enumerate() {
+            let dst = panels.get_mut((p * h + row) * W..(p * h + row + 1) * W);
+            // fixed-size arrays: the loop below unrolls and vectorises
+            let (Ok(chunk), Ok(sum), Ok(square), Some(Ok(dst))) = (
+                <&[f32; W]>::try_from(chunk),
+                <&mut [f64; W]>::try_from(sum),
+                <&mut [f64; W]>::try_from(square),
+                dst.map(<&mut [f64; W]>::try_from),
+            ) else {
+                continue;
+            };
+            let x: [f64; W] = std::array::from_fn(|o| f64::from(chunk[o]));
+            for o in 0..W {
+                sum[o] += x[o];
+                square[o] += x[o] * x[o];
+                dst[if REVERSED { W - 1 - o } else { o }] = x[o];
+            }
+        }
+        if !rest.is_empty() {
+            let (p, c0) = (w / W, w - rest.len());
+            let Some(dst) = panels.get_mut((p * h + row) * W..(p * h + row + 1) * W) else {
+                continue;
+            };
+            for (o, &v) in rest.iter().enumerate() {
+                let x = f64::from(v);
+                dst[if REVERSED { W - 1 - o } else { o }] = x;
+                sums[c0 + o] += x;
+                squares[c0 + o] += x * x;
             }
         }
     }
-}
-
-/// Column prefix sums of one channel (`r`, `q`: `h x w`, row-major) into `prefix`: reference
-/// `Σ`, reference `Σ x²`, query `Σ`, query `Σ x²`, `w + 1` each, entry `c` summing columns
-/// `< c`.
-fn column_prefix_sums(r: &[f32], q: &[f32], w: usize, prefix: &mut Vec<f64>) {
-    prefix.clear();
-    prefix.resize(4 * (w + 1), 0.0);
-    let (pr, rest) = prefix.split_at_mut(w + 1);
-    let (prr, rest) = rest.split_at_mut(w + 1);
-    let (pq, pqq) = rest.split_at_mut(w + 1);
-    for (rr, qr) in r.chunks_exact(w).zip(q.chunks_exact(w)) {
-        for c in 0..w {
-            let (a, b) = (f64::from(rr[c]), f64::from(qr[c]));
-            pr[c + 1] += a;
-            prr[c + 1] += a * a;
-            pq[c + 1] += b;
-            pqq[c + 1] += b * b;
-        }
-    }
-    for c in 0..w {
-        pr[c + 1] += pr[c];
-        prr[c + 1] += prr[c];
-        pq[c + 1] += pq[c];
-        pqq[c + 1] += pqq[c];
+    for c in 1..w {
+        sums[c] += sums[c - 1];
+        squares[c] += squares[c - 1];
     }
 }
 
 /// `r(T)` for `T` in `-t_max..=t_max` of one channel into `curve`, from `products` (`Σ AB` per
-/// shift) and `prefix` ([`column_prefix_sums`]).
+/// shift) and `prefix` (reference sums, reference squares, query sums, query squares, as
+/// [`prepare_channel`] leaves them).
 fn channel_curve(shape: ChannelShape, products: &[f64], prefix: &[f64], curve: &mut Vec<f64>) {
     let ChannelShape { h, w, t_max } = shape;
     let (pr, rest) = prefix.split_at(w + 1);
@@ -601,31 +659,28 @@ const TILE_I: usize = 4;
 /// Query columns per tile of `D` (and per query panel).
 const TILE_J: usize = 8;
 
-/// `Σ AB` of one channel for every shift `-t_max..=t_max` into `out`: the diagonal sums of
-/// `D[i][j] = Σ_rows r[row][i] q[row][j]` over `i - j = T`, from the channel's panels
-/// ([`pack_panels`], [`TILE_I`] and [`TILE_J`] columns). Uses AVX2 and FMA where the CPU has
-/// them (fused multiply-adds: the result may differ from the portable one in the last bit).
-fn shifted_products(r_panels: &[f64], q_panels: &[f64], shape: ChannelShape, out: &mut Vec<f64>) {
-    out.clear();
-    out.resize(2 * shape.t_max + 1, 0.0);
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-        // SAFETY: the CPU has AVX2 and FMA, checked just above.
-        unsafe { shifted_products_avx2(r_panels, q_panels, shape, out) };
-        return;
-    }
-    shifted_products_with(r_panels, q_panels, shape, out, |a, b, c| a * b + c);
-}
-
+/// [`shifted_products`] with fused multiply-adds, compiled on its own (inlined into the rest,
+/// the tile loop lost its vector registers).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
+#[inline(never)]
 fn shifted_products_avx2(r_panels: &[f64], q_panels: &[f64], shape: ChannelShape, out: &mut [f64]) {
-    shifted_products_with(r_panels, q_panels, shape, out, f64::mul_add);
+    shifted_products(r_panels, q_panels, shape, out, f64::mul_add);
 }
 
-/// [`shifted_products`] with `madd(a, b, c) = a b + c`.
+/// A section of [`shifted_products`]' `out` holds `2 w` and this many diagonals.
+const DIAGONALS_PAST_W: usize = TILE_I + TILE_J - 1;
+
+/// `Σ AB` of one channel for every shift added into `out`: the diagonal sums of
+/// `D[i][j] = Σ_rows r[row][i] q[row][j]`, split by `a = i mod TILE_I` into `TILE_I` sections
+/// of `2 w + DIAGONALS_PAST_W` (section `a` holds diagonal `i - j` at `i - j + w + TILE_J - 1 -
+/// a`; apart, a tile's rows never store into overlapping ranges back to back), from the
+/// channel's panels ([`prepare_channel`]: the reference in panels of [`TILE_I`]
+/// columns, the query in panels of [`TILE_J`] columns in decreasing order, so that a tile's
+/// row `a` holds the diagonals `ib - jb - 7 + a ..= ib - jb + a`, in increasing order); only
+/// the tiles that touch a shift in `-t_max..=t_max`; `madd(a, b, c) = a b + c`.
 #[inline(always)]
-fn shifted_products_with(
+fn shifted_products(
     r_panels: &[f64],
     q_panels: &[f64],
     shape: ChannelShape,
@@ -634,6 +689,7 @@ fn shifted_products_with(
 ) {
     let ChannelShape { h, w, t_max } = shape;
     let t_max = t_max as isize;
+    let section_len = 2 * w + DIAGONALS_PAST_W;
     for (pi, r_panel) in r_panels.chunks_exact(h * TILE_I).enumerate() {
         let ib = pi * TILE_I;
         for (pj, q_panel) in q_panels.chunks_exact(h * TILE_J).enumerate() {
@@ -654,13 +710,14 @@ fn shifted_products_with(
                     }
                 }
             }
-            for (a, acc_a) in acc.iter().enumerate() {
-                for (b, &s) in acc_a.iter().enumerate() {
-                    let (i, j) = (ib + a, jb + b);
-                    let t = i as isize - j as isize;
-                    if i < w && j < w && (-t_max..=t_max).contains(&t) {
-                        out[(t + t_max) as usize] += s;
-                    }
+            // row a, lane l: i = ib + a, j = jb + 7 - l, at ib - jb + l + w of section a
+            let base = ib + w - jb;
+            for (section, acc_a) in out.chunks_exact_mut(section_len).zip(&acc) {
+                let Some(dst) = section.get_mut(base..base + TILE_J) else {
+                    continue;
+                };
+                for (d, &s) in dst.iter_mut().zip(acc_a) {
+                    *d += s;
                 }
             }
         }
@@ -1318,18 +1375,18 @@ mod tests {
     }
 
     #[test]
-    fn the_portable_products_match_the_dispatched_ones() {
-        let (k, h, w) = (1, 9, 37);
-        let (r, q) = (features(k, h, w, 11), features(k, h, w, 12));
+    fn the_portable_arithmetic_matches_the_dispatched_one() {
+        let (h, w) = (9, 37);
+        let (r, q) = (features(1, h, w, 11), features(1, h, w, 12));
         let shape = ChannelShape { h, w, t_max: 17 };
-        let (mut rp, mut qp) = (Vec::new(), Vec::new());
-        pack_panels(&r, TILE_I, &mut rp);
-        pack_panels(&q, TILE_J, &mut qp);
-        let mut dispatched = Vec::new();
-        shifted_products(&rp, &qp, shape, &mut dispatched);
-        let mut portable = vec![0.0; 2 * 17 + 1];
-        shifted_products_with(&rp, &qp, shape, &mut portable, |a, b, c| a * b + c);
-        for (t, (a, b)) in dispatched.iter().zip(&portable).enumerate() {
+        let mut corr = Correlator::default();
+        corr.channel(&r.data, &q.data, shape);
+        let dispatched = corr.curve.clone();
+        corr.channel_with(&r.data, &q.data, shape, |rp, qp, s, out| {
+            shifted_products(rp, qp, s, out, |a, b, c| a * b + c)
+        });
+        assert_eq!(dispatched.len(), 2 * 17 + 1);
+        for (t, (a, b)) in dispatched.iter().zip(&corr.curve).enumerate() {
             assert!((a - b).abs() <= 1e-12, "shift {}: {a} vs {b}", t as i64 - 17);
         }
     }
