@@ -85,8 +85,10 @@ static RUNTIME: Mutex<Option<(PathBuf, ort::environment::Environment)>> = Mutex:
 /// Loads ONNX Runtime (once per process) and returns its environment.
 fn runtime(library: &OnnxRuntimeLibrary) -> Result<ort::environment::Environment> {
     let mut loaded = RUNTIME.lock().unwrap_or_else(PoisonError::into_inner);
+    // the same file under another name is the same library
+    let canonical = std::fs::canonicalize(&library.path).unwrap_or_else(|_| library.path.clone());
     if let Some((path, env)) = loaded.as_ref() {
-        if *path != library.path {
+        if *path != canonical {
             return Err(Error::OnnxRuntime {
                 path: library.path.clone(),
                 message: format!(
@@ -113,7 +115,7 @@ fn runtime(library: &OnnxRuntimeLibrary) -> Result<ort::environment::Environment
         .with_telemetry(false)
         .build()
         .map_err(|e| failed(e.to_string()))?;
-    *loaded = Some((library.path.clone(), env.clone()));
+    *loaded = Some((canonical, env.clone()));
     Ok(env)
 }
 
@@ -257,8 +259,8 @@ impl Encoder {
         let (shape, data) = output
             .try_extract_tensor::<f32>()
             .map_err(|e| failed(format!("output `{ENCODER_OUTPUT}`: {e}")))?;
-        let dims: Vec<i64> = shape.iter().copied().collect();
-        let [1, k, h, w] = dims[..] else {
+        let dims: &[i64] = shape;
+        let [1, k, h, w] = *dims else {
             return Err(failed(format!(
                 "output `{ENCODER_OUTPUT}` has shape {dims:?}, expected [1, K, h, w]"
             )));
@@ -1456,6 +1458,13 @@ mod tests {
                 "share_threshold": 0.3, "sigma_m": 0.05, "zeroth_m": 0.1,
                 "training": {{ "pairs": 10 }} }}"#
         )
+    }
+
+    #[test]
+    fn a_model_can_move_to_another_thread() {
+        fn send<T: Send>() {}
+        send::<Model>();
+        send::<Correlator>();
     }
 
     #[test]
