@@ -326,6 +326,18 @@ impl Frame {
         self.data.bytes()
     }
 
+    /// The same frame with its payload copied out of the transport's memory (an iceoryx2
+    /// sample goes back to its publisher): for frames kept longer than the topic's buffer.
+    pub fn detach(self) -> Frame {
+        match self.data {
+            FrameData::Iox(ref sample) => Frame {
+                header: self.header,
+                data: FrameData::Shared(std::sync::Arc::from(sample.payload())),
+            },
+            _ => self,
+        }
+    }
+
     /// The kind; corrupt headers are reported by [`Inbox`].
     pub fn kind(&self) -> Option<FrameKind> {
         self.header.kind()

@@ -19,6 +19,7 @@
 //! nothing to say. Stages must stamp outputs no earlier than the input that caused them;
 //! the [`Outbox`] rejects a stamp earlier than a promise already made.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -388,6 +389,12 @@ struct InputState {
     inbox: Inbox,
     delay_ns: Option<i64>,
     head: Option<Frame>,
+    /// Feedback inputs only: data frames read ahead of the head (payloads copied out of the
+    /// transport). A feedback input drains its inbox on every fill, so its producer, which
+    /// is downstream of this stage, never blocks on it: with a bounded topic buffer a
+    /// blocked feedback producer closes a wait cycle (it waits on this stage's buffer, this
+    /// stage waits on its primary inputs, which wait on a source that waits on the producer).
+    backlog: VecDeque<Frame>,
     /// Effective watermark (feedback delay added).
     watermark: i64,
 }
@@ -401,8 +408,26 @@ impl InputState {
         self.delay_ns.is_some()
     }
 
-    /// Reads until a data frame is pending or nothing more is queued.
+    /// Reads until a data frame is pending or nothing more is queued (a feedback input:
+    /// everything queued).
     fn fill(&mut self) -> Result<(), BusError> {
+        if self.is_feedback() {
+            while !self.inbox.ended() {
+                match self.inbox.try_next()? {
+                    Some(Delivery::Data(frame)) => {
+                        self.watermark = self.watermark.max(self.effective(frame.header.stamp_ns));
+                        self.backlog.push_back(frame.detach());
+                    }
+                    Some(Delivery::Watermark(w)) => self.watermark = self.watermark.max(self.effective(w)),
+                    Some(Delivery::EndOfStream) => self.watermark = i64::MAX,
+                    None => break,
+                }
+            }
+            if self.head.is_none() {
+                self.head = self.backlog.pop_front();
+            }
+            return Ok(());
+        }
         while self.head.is_none() && !self.inbox.ended() {
             match self.inbox.try_next()? {
                 Some(Delivery::Data(frame)) => {
@@ -502,6 +527,7 @@ pub fn run_node<S: Stage>(
             inbox: Inbox::new(transport.subscriber(&b.topic_config())?, b.latest_only),
             delay_ns: b.feedback_delay_ns,
             head: None,
+            backlog: VecDeque::new(),
             watermark: i64::MIN,
         });
     }
