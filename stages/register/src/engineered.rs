@@ -17,6 +17,7 @@ use crate::{Error, Result};
 
 /// Parameters of [`register`].
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields, default)]
 pub struct EngineeredParams {
     /// Largest shift tried either way, m (default 1.5: half a 3 m submap).

@@ -5,11 +5,15 @@
 //!
 //! - [`learned`]: the learned model (seed 000 §4.5-4.6, `tools/train/SPEC.md`): ONNX encoder,
 //!   spatial correlation of the features, regression head.
-//!
-//! Loop-candidate selection and the `register` stage come with issue 6.
+//! - [`candidates`]: loop-candidate selection from the current estimate (or the ground truth,
+//!   the oracle association used for evaluation).
+//! - `node` (feature `node`, default): the `register` stage.
 
+pub mod candidates;
 pub mod engineered;
 pub mod learned;
+#[cfg(feature = "node")]
+pub mod node;
 
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]

@@ -14,6 +14,7 @@ use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_ingest::node::IngestStage;
 use gprflow_lgpr::node::LgprDspStage;
+use gprflow_register::node::RegisterStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
 
@@ -28,6 +29,7 @@ pub fn catalog() -> StageCatalog {
         .with(describe::<DspStage>())
         .with(describe::<DspSubmapStage>())
         .with(describe::<LgprDspStage>())
+        .with(describe::<RegisterStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -58,6 +60,7 @@ pub fn run_stage(
         DspStage::NAME => run::<DspStage>(spec, &transport, stop),
         DspSubmapStage::NAME => run::<DspSubmapStage>(spec, &transport, stop),
         LgprDspStage::NAME => run::<LgprDspStage>(spec, &transport, stop),
+        RegisterStage::NAME => run::<RegisterStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(

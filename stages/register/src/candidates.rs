@@ -1,0 +1,332 @@
+//! Loop-candidate selection (seed 000 §4.3, §4.8.4): which earlier submaps a new submap is
+//! registered with.
+//!
+//! Every submap is placed by its *anchor*, the ground position of its ground-order column 0
+//! (see [`Anchor`]), in an association frame: the current estimate (the normal mode) or the
+//! ground truth (the oracle association used only for evaluation). A reference is a candidate
+//! for a query when, in the reference anchor's frame, the query anchor lies within
+//! `max_along_m` along track and `max_cross_m` across it, the headings agree within
+//! `max_heading_deg`, and the two were driven at least `min_separation_s` apart (sequential
+//! submaps share their traces; registering them would only repeat the wheel odometry).
+
+use std::collections::BTreeMap;
+
+use crate::{Error, Result};
+
+/// A planar pose: position (m) and heading (rad) in some frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Planar {
+    /// x, m.
+    pub x_m: f64,
+    /// y, m.
+    pub y_m: f64,
+    /// Heading (yaw), rad.
+    pub yaw_rad: f64,
+}
+
+impl Planar {
+    /// The pose with heading from a unit quaternion's yaw.
+    pub fn from_quaternion(x_m: f64, y_m: f64, q: [f64; 4]) -> Self {
+        let [qx, qy, qz, qw] = q;
+        let yaw_rad = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
+        Self { x_m, y_m, yaw_rad }
+    }
+
+    /// `other` in this pose's frame: (along, across, heading difference wrapped to ±π).
+    pub fn relative(&self, other: &Planar) -> (f64, f64, f64) {
+        let (dx, dy) = (other.x_m - self.x_m, other.y_m - self.y_m);
+        let (s, c) = self.yaw_rad.sin_cos();
+        (c * dx + s * dy, -s * dx + c * dy, wrap(other.yaw_rad - self.yaw_rad))
+    }
+
+    /// This pose composed with `delta` (expressed in this pose's frame).
+    pub fn compose(&self, delta: &Planar) -> Planar {
+        let (s, c) = self.yaw_rad.sin_cos();
+        Planar {
+            x_m: self.x_m + c * delta.x_m - s * delta.y_m,
+            y_m: self.y_m + s * delta.x_m + c * delta.y_m,
+            yaw_rad: wrap(self.yaw_rad + delta.yaw_rad),
+        }
+    }
+
+    /// `other` in this pose's frame, as a pose.
+    pub fn between(&self, other: &Planar) -> Planar {
+        let (x_m, y_m, yaw_rad) = self.relative(other);
+        Planar { x_m, y_m, yaw_rad }
+    }
+}
+
+/// An angle wrapped to `(-π, π]`.
+pub fn wrap(a: f64) -> f64 {
+    let t = (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+    if t <= -std::f64::consts::PI {
+        t + std::f64::consts::TAU
+    } else {
+        t
+    }
+}
+
+/// Stamped planar poses (a state estimate or the ground truth), interpolated between samples.
+/// A later pose at the same stamp replaces the earlier one (a re-smoothed state).
+#[derive(Debug, Clone, Default)]
+pub struct Track {
+    poses: BTreeMap<i64, Planar>,
+}
+
+impl Track {
+    /// An empty track.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds or replaces the pose at `stamp_ns`.
+    ///
+    /// # Errors
+    /// A pose that is not finite (nothing is stored).
+    pub fn insert(&mut self, stamp_ns: i64, pose: Planar) -> Result<()> {
+        if !(pose.x_m.is_finite() && pose.y_m.is_finite() && pose.yaw_rad.is_finite()) {
+            return Err(Error::Shape(format!("pose at {stamp_ns} ns is not finite: {pose:?}")));
+        }
+        self.poses.insert(stamp_ns, pose);
+        Ok(())
+    }
+
+    /// Newest stamp, ns.
+    pub fn last_stamp_ns(&self) -> Option<i64> {
+        self.poses.keys().next_back().copied()
+    }
+
+    /// Number of poses.
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    /// No poses yet.
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+
+    /// The pose at `stamp_ns`, linear between the two poses around it (heading along the
+    /// shorter arc); `None` outside the track or across a gap longer than `max_gap_ns`.
+    pub fn at(&self, stamp_ns: i64, max_gap_ns: i64) -> Option<Planar> {
+        let (&t1, p1) = self.poses.range(stamp_ns..).next()?;
+        if t1 == stamp_ns {
+            return Some(*p1);
+        }
+        let (&t0, p0) = self.poses.range(..stamp_ns).next_back()?;
+        if t1 - t0 > max_gap_ns {
+            return None;
+        }
+        let a = (stamp_ns - t0) as f64 / (t1 - t0) as f64;
+        Some(Planar {
+            x_m: p0.x_m + a * (p1.x_m - p0.x_m),
+            y_m: p0.y_m + a * (p1.y_m - p0.y_m),
+            yaw_rad: wrap(p0.yaw_rad + a * wrap(p1.yaw_rad - p0.yaw_rad)),
+        })
+    }
+}
+
+/// Where a submap sits: its ground-order column 0. A submap driven forwards starts there (its
+/// oldest trace); one driven backwards ends there (its newest trace).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Anchor {
+    /// Stamp of the anchor trace, ns.
+    pub stamp_ns: i64,
+    /// Odometry pose of the anchor (the submap stage's dead reckoning).
+    pub odom: Planar,
+    /// Odometry pose of the submap's oldest trace.
+    pub odom_start: Planar,
+    /// Stamp of the oldest trace, ns.
+    pub start_stamp_ns: i64,
+    /// Driven backwards (columns reversed into ground order).
+    pub backward: bool,
+}
+
+impl Anchor {
+    /// The anchor's pose in a frame where the track is known: the track at the anchor's stamp
+    /// when it reaches that far, else the track at the oldest trace composed with the
+    /// submap's own odometry from there to the anchor.
+    pub fn locate(&self, track: &Track, max_gap_ns: i64) -> Option<Planar> {
+        track.at(self.stamp_ns, max_gap_ns).or_else(|| {
+            let start = track.at(self.start_stamp_ns, max_gap_ns)?;
+            Some(start.compose(&self.odom_start.between(&self.odom)))
+        })
+    }
+}
+
+/// Gates of [`candidates`].
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
+#[serde(deny_unknown_fields, default)]
+pub struct CandidateGates {
+    /// Largest along-track offset of the query anchor from the reference anchor, m (default
+    /// 1.0; keep it below the registration's largest shift so the true shift is searched).
+    pub max_along_m: f64,
+    /// Largest cross-track offset, m (default 0.3: the radar sees a narrow strip).
+    pub max_cross_m: f64,
+    /// Largest heading difference, degrees (default 15).
+    pub max_heading_deg: f64,
+    /// Smallest time between the two submaps' anchors, s (default 15: longer than a submap
+    /// takes to drive, so sequential submaps are never candidates).
+    pub min_separation_s: f64,
+    /// References tried per query, nearest first (default 1).
+    pub per_query: usize,
+}
+
+impl Default for CandidateGates {
+    fn default() -> Self {
+        Self {
+            max_along_m: 1.0,
+            max_cross_m: 0.3,
+            max_heading_deg: 15.0,
+            min_separation_s: 15.0,
+            per_query: 1,
+        }
+    }
+}
+
+impl CandidateGates {
+    /// # Errors
+    /// A gate that is not a positive finite number (`per_query` at least 1).
+    pub fn check(&self) -> Result<()> {
+        let positive = |key: &'static str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(Error::Param {
+                    key,
+                    message: format!("must be a positive number, got {v}"),
+                })
+            }
+        };
+        positive("candidates.max_along_m", self.max_along_m)?;
+        positive("candidates.max_cross_m", self.max_cross_m)?;
+        positive("candidates.max_heading_deg", self.max_heading_deg)?;
+        positive("candidates.min_separation_s", self.min_separation_s)?;
+        if self.per_query == 0 {
+            return Err(Error::Param {
+                key: "candidates.per_query",
+                message: "must be at least 1".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// A placed reference: its index in the caller's list, anchor stamp and pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Placed {
+    /// Index in the caller's reference list.
+    pub index: usize,
+    /// Anchor stamp, ns.
+    pub stamp_ns: i64,
+    /// Anchor pose in the association frame.
+    pub pose: Planar,
+}
+
+/// The references (at most `per_query`, nearest first) that pass the gates for a query
+/// anchored at `query` (stamp, pose); each with the query's along-track offset from it.
+pub fn candidates(gates: &CandidateGates, query_stamp_ns: i64, query: &Planar, refs: &[Placed]) -> Vec<(usize, f64)> {
+    let min_sep_ns = (gates.min_separation_s * 1e9) as i64;
+    let max_heading = gates.max_heading_deg.to_radians();
+    let mut found: Vec<(f64, usize, f64)> = refs
+        .iter()
+        .filter(|r| (query_stamp_ns - r.stamp_ns).abs() >= min_sep_ns)
+        .filter_map(|r| {
+            let (along, cross, dyaw) = r.pose.relative(query);
+            (along.abs() <= gates.max_along_m && cross.abs() <= gates.max_cross_m && dyaw.abs() <= max_heading)
+                .then(|| (along.hypot(cross), r.index, along))
+        })
+        .collect();
+    found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    found.into_iter().take(gates.per_query).map(|(_, i, along)| (i, along)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn p(x: f64, y: f64, yaw_deg: f64) -> Planar {
+        Planar {
+            x_m: x,
+            y_m: y,
+            yaw_rad: yaw_deg.to_radians(),
+        }
+    }
+
+    #[test]
+    fn relative_pose_is_in_the_reference_frame() {
+        let r = p(1.0, 1.0, 90.0);
+        let (along, cross, dyaw) = r.relative(&p(1.0, 3.0, 100.0));
+        assert!((along - 2.0).abs() < 1e-12 && cross.abs() < 1e-12);
+        assert!((dyaw - 10f64.to_radians()).abs() < 1e-12);
+        let back = r.compose(&r.between(&p(4.0, -2.0, -170.0)));
+        assert!((back.x_m - 4.0).abs() < 1e-12 && (back.y_m + 2.0).abs() < 1e-12);
+        assert!((wrap(back.yaw_rad - (-170f64).to_radians())).abs() < 1e-12);
+    }
+
+    #[test]
+    fn wrap_stays_in_range_and_keeps_the_angle() {
+        for a in [-10.0, -std::f64::consts::PI, 0.0, 3.2, 7.0, std::f64::consts::PI] {
+            let w = wrap(a);
+            assert!(w > -std::f64::consts::PI && w <= std::f64::consts::PI + 1e-12, "{a} -> {w}");
+            assert!((w.sin() - a.sin()).abs() < 1e-12 && (w.cos() - a.cos()).abs() < 1e-12, "{a} -> {w}");
+        }
+    }
+
+    #[test]
+    fn track_interpolates_and_refuses_gaps_and_outside() {
+        let mut t = Track::new();
+        t.insert(0, p(0.0, 0.0, 170.0)).expect("insert");
+        t.insert(100, p(1.0, 2.0, -170.0)).expect("insert");
+        let m = t.at(50, 1000).expect("inside");
+        assert!((m.x_m - 0.5).abs() < 1e-12 && (m.y_m - 1.0).abs() < 1e-12);
+        // the shorter arc across ±180 degrees
+        assert!((m.yaw_rad.abs() - std::f64::consts::PI).abs() < 1e-9);
+        assert!(t.at(101, 1000).is_none() && t.at(-1, 1000).is_none());
+        assert!(t.at(50, 99).is_none());
+        assert!(t.insert(200, p(f64::NAN, 0.0, 0.0)).is_err());
+        assert_eq!(t.len(), 2);
+    }
+
+    #[test]
+    fn anchor_beyond_the_track_uses_the_submap_odometry() {
+        let mut t = Track::new();
+        t.insert(0, p(10.0, 0.0, 90.0)).expect("insert");
+        t.insert(1_000, p(10.0, 1.0, 90.0)).expect("insert");
+        // odometry frame rotated against the track's: 2 m forward from the start
+        let a = Anchor {
+            stamp_ns: 5_000,
+            odom: p(2.0, 0.0, 0.0),
+            odom_start: p(0.0, 0.0, 0.0),
+            start_stamp_ns: 1_000,
+            backward: false,
+        };
+        let at = a.locate(&t, 10_000).expect("located");
+        assert!((at.x_m - 10.0).abs() < 1e-12 && (at.y_m - 3.0).abs() < 1e-12, "{at:?}");
+    }
+
+    #[test]
+    fn gates_pick_the_nearest_reference_on_the_same_line() {
+        let refs = [
+            Placed { index: 0, stamp_ns: 0, pose: p(0.0, 0.0, 0.0) },
+            Placed { index: 1, stamp_ns: 0, pose: p(0.6, 0.05, 0.0) },
+            // across the line
+            Placed { index: 2, stamp_ns: 0, pose: p(0.9, 0.5, 0.0) },
+            // facing the other way
+            Placed { index: 3, stamp_ns: 0, pose: p(0.9, 0.0, 180.0) },
+            // too recent
+            Placed { index: 4, stamp_ns: 90_000_000_000, pose: p(0.9, 0.0, 0.0) },
+            // too far along
+            Placed { index: 5, stamp_ns: 0, pose: p(-0.5, 0.0, 0.0) },
+        ];
+        let g = CandidateGates { per_query: 3, ..CandidateGates::default() };
+        let found = candidates(&g, 100_000_000_000, &p(0.8, 0.0, 2.0), &refs);
+        let ids: Vec<usize> = found.iter().map(|f| f.0).collect();
+        assert_eq!(ids, vec![1, 0]);
+        assert!((found[0].1 - 0.2).abs() < 1e-9);
+        assert!(g.check().is_ok());
+        assert!(CandidateGates { max_cross_m: f64::NAN, ..g.clone() }.check().is_err());
+        assert!(CandidateGates { per_query: 0, ..g }.check().is_err());
+    }
+}

@@ -1,0 +1,575 @@
+//! The `register` stage: submaps in, [`Registration`]s out (seed 000 §4.3-4.5).
+//!
+//! Every valid submap is put in ground order ([`ground_order`]) and kept as a reference
+//! (one every `reference_spacing_m` of travel). A new submap, the query, is placed in the
+//! association frame (the estimate, read as a feedback input, or the ground truth for the
+//! oracle association) and registered with the references that pass the loop-candidate
+//! gates ([`crate::candidates`]). The method is the engineered correlation baseline, the
+//! learned model, or the oracle (the ground-truth transform; evaluation only). Submaps
+//! below the saliency gate are neither references nor queries; a match below the method's
+//! own gate (peak correlation, or the learned "shared features" check) is not sent.
+//!
+//! A query waits until the association frame reaches it: the estimate (or truth) must cover
+//! its oldest trace (its anchor with the oracle), so registrations go out slightly after
+//! their submap; each carries the two anchor stamps, which is what the estimator uses.
+
+use std::collections::VecDeque;
+
+use gprflow::msg::{
+    Covariance6, Header, Message, Point, Pose, PoseStamped, Quaternion, Registration, StateEstimate, Submap, Time,
+};
+use gprflow::stage::{
+    Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
+};
+
+use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
+use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
+use crate::{Error, Result};
+
+/// How a candidate pair is registered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Pearson correlation of the submaps over the along-track shift (eq. 4.2-4.3).
+    Engineered,
+    /// The ground-truth transform (needs the `truth` input; evaluation only).
+    Oracle,
+}
+
+impl Method {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Engineered => "engineered",
+            Self::Oracle => "oracle",
+        }
+    }
+}
+
+/// Where submaps are placed to find loop candidates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Association {
+    /// The current estimate (the `estimate` feedback input): the normal mode.
+    Estimate,
+    /// The ground truth (the `truth` input): the oracle association, for evaluation only.
+    Truth,
+}
+
+/// Parameters of the `register` stage.
+#[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct RegisterParams {
+    /// Registration method (default engineered).
+    pub method: Method,
+    /// Where loop candidates come from (default estimate).
+    pub association: Association,
+    /// Loop-candidate gates.
+    pub candidates: CandidateGates,
+    /// The engineered method's search.
+    pub engineered: EngineeredParams,
+    /// Smallest peak correlation the engineered method accepts (default 0.3).
+    pub min_score: f64,
+    /// Smallest saliency (average-pooled row-wise standard deviation) of a submap that is
+    /// registered at all (default 0: every valid submap).
+    pub min_saliency: f32,
+    /// Along-track sigma sent with each registration, m (default: 0.1 engineered, 0.02 oracle).
+    pub sigma_m: Option<f64>,
+    /// Keep a reference every this much travel, m (default 0.3).
+    pub reference_spacing_m: f64,
+    /// Try a query every this much travel, m (default 0.5).
+    pub query_spacing_m: f64,
+    /// Longest gap between two poses of the association frame that is interpolated, s (default 1).
+    pub max_track_gap_s: f64,
+}
+
+impl Default for RegisterParams {
+    fn default() -> Self {
+        Self {
+            method: Method::Engineered,
+            association: Association::Estimate,
+            candidates: CandidateGates::default(),
+            engineered: EngineeredParams::default(),
+            min_score: 0.3,
+            min_saliency: 0.0,
+            sigma_m: None,
+            reference_spacing_m: 0.3,
+            query_spacing_m: 0.5,
+            max_track_gap_s: 1.0,
+        }
+    }
+}
+
+impl RegisterParams {
+    fn check(&self) -> Result<()> {
+        self.candidates.check()?;
+        let positive = |key: &'static str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(Error::Param {
+                    key,
+                    message: format!("must be a positive number, got {v}"),
+                })
+            }
+        };
+        positive("reference_spacing_m", self.reference_spacing_m)?;
+        positive("query_spacing_m", self.query_spacing_m)?;
+        positive("max_track_gap_s", self.max_track_gap_s)?;
+        if let Some(s) = self.sigma_m {
+            positive("sigma_m", s)?;
+        }
+        if !(self.min_score.is_finite() && (-1.0..=1.0).contains(&self.min_score)) {
+            return Err(Error::Param {
+                key: "min_score",
+                message: format!("must be a correlation in -1..=1, got {}", self.min_score),
+            });
+        }
+        if !self.min_saliency.is_finite() {
+            return Err(Error::Param {
+                key: "min_saliency",
+                message: format!("must be finite, got {}", self.min_saliency),
+            });
+        }
+        Ok(())
+    }
+
+    fn sigma(&self) -> f64 {
+        self.sigma_m.unwrap_or(match self.method {
+            Method::Engineered => 0.1,
+            Method::Oracle => 0.02,
+        })
+    }
+}
+
+/// `pixels` (`rows x cols`, row-major, columns in driving order) in ground order: columns
+/// reversed when the submap was driven backwards, so column 0 is the smallest along-body-x.
+pub fn ground_order(pixels: &[f32], rows: usize, cols: usize, backward: bool) -> Vec<f32> {
+    if !backward {
+        return pixels.to_vec();
+    }
+    let mut out = Vec::with_capacity(pixels.len());
+    for row in pixels.chunks_exact(cols).take(rows) {
+        out.extend(row.iter().rev());
+    }
+    out
+}
+
+fn planar_of(p: &Pose) -> Planar {
+    let q = &p.orientation;
+    Planar::from_quaternion(p.position.x, p.position.y, [q.x, q.y, q.z, q.w])
+}
+
+/// A submap ready to be registered: ground-order pixels and where it sits.
+#[derive(Debug)]
+struct Entry {
+    id: u32,
+    anchor: Anchor,
+    rows: usize,
+    cols: usize,
+    resolution_m: f64,
+    pixels: Vec<f32>,
+}
+
+impl Entry {
+    fn view(&self) -> SubmapView<'_> {
+        SubmapView {
+            pixels: &self.pixels,
+            rows: self.rows,
+            cols: self.cols,
+            resolution_m: self.resolution_m,
+        }
+    }
+
+    /// Checks the message and builds the entry; `Err` says what is wrong with it.
+    fn from_msg(m: &Submap<'_>) -> std::result::Result<Self, String> {
+        let (rows, cols) = (m.rows as usize, m.cols as usize);
+        if rows == 0 || cols == 0 || m.pixels.len() != rows * cols {
+            return Err(format!("pixels: {} values for {rows} x {cols}", m.pixels.len()));
+        }
+        if let Some(i) = m.pixels.iter().position(|v| !v.is_finite()) {
+            return Err(format!("pixels[{i}] is {}", m.pixels[i]));
+        }
+        if !(m.resolution_m.is_finite() && m.resolution_m > 0.0) {
+            return Err(format!("resolution_m: {}", m.resolution_m));
+        }
+        if !(m.start_distance_m.is_finite() && m.end_distance_m.is_finite()) {
+            return Err(format!("start/end_distance_m: {} / {}", m.start_distance_m, m.end_distance_m));
+        }
+        let backward = m.end_distance_m < m.start_distance_m;
+        let (start, end) = (planar_of(&m.start_pose), planar_of(&m.end_pose));
+        let end_stamp_ns = m.header.stamp.to_ns();
+        let start_stamp_ns = m.start_stamp.to_ns();
+        Ok(Self {
+            id: m.id,
+            anchor: Anchor {
+                stamp_ns: if backward { end_stamp_ns } else { start_stamp_ns },
+                odom: if backward { end } else { start },
+                odom_start: start,
+                start_stamp_ns,
+                backward,
+            },
+            rows,
+            cols,
+            resolution_m: m.resolution_m,
+            pixels: ground_order(&m.pixels, rows, cols, backward),
+        })
+    }
+}
+
+/// What happened to the submaps and pairs, reported at the end.
+#[derive(Debug, Default)]
+struct Counts {
+    invalid: u64,
+    not_salient: u64,
+    queries: u64,
+    pairs: u64,
+    rejected: u64,
+    sent: u64,
+    never_placed: u64,
+}
+
+/// The register stage.
+#[derive(Debug)]
+pub struct RegisterStage {
+    params: RegisterParams,
+    out: Output<Registration>,
+    estimate: Track,
+    truth: Track,
+    pending: VecDeque<Entry>,
+    references: Vec<Entry>,
+    last_query_odom: Option<Planar>,
+    last_primary_ns: i64,
+    counts: Counts,
+    drops: Drops,
+}
+
+impl RegisterStage {
+    fn max_gap_ns(&self) -> i64 {
+        (self.params.max_track_gap_s * 1e9) as i64
+    }
+
+    fn association(&self) -> &Track {
+        match self.params.association {
+            Association::Estimate => &self.estimate,
+            Association::Truth => &self.truth,
+        }
+    }
+
+    /// The association frame (and the truth, for the oracle) reach this entry.
+    fn ready(&self, e: &Entry) -> bool {
+        let reached = |t: &Track, stamp: i64| t.last_stamp_ns().is_some_and(|last| last >= stamp);
+        let placed = match self.params.association {
+            Association::Estimate => reached(&self.estimate, e.anchor.start_stamp_ns),
+            Association::Truth => reached(&self.truth, e.anchor.stamp_ns),
+        };
+        placed && (self.params.method != Method::Oracle || reached(&self.truth, e.anchor.stamp_ns))
+    }
+
+    fn process_pending(&mut self, stamp_ns: i64, out: &mut Outputs, all: bool) -> std::result::Result<(), StageError> {
+        while let Some(front) = self.pending.front() {
+            if !all && !self.ready(front) {
+                break;
+            }
+            let Some(entry) = self.pending.pop_front() else { break };
+            self.process(entry, stamp_ns, out)?;
+        }
+        Ok(())
+    }
+
+    fn process(&mut self, q: Entry, stamp_ns: i64, out: &mut Outputs) -> std::result::Result<(), StageError> {
+        let gap = self.max_gap_ns();
+        let Some(q_pose) = q.anchor.locate(self.association(), gap) else {
+            self.counts.never_placed += 1;
+            return Ok(());
+        };
+        let spaced = self
+            .last_query_odom
+            .is_none_or(|p| (p.x_m - q.anchor.odom.x_m).hypot(p.y_m - q.anchor.odom.y_m) >= self.params.query_spacing_m);
+        if spaced {
+            let placed: Vec<Placed> = self
+                .references
+                .iter()
+                .enumerate()
+                .filter_map(|(index, r)| {
+                    Some(Placed {
+                        index,
+                        stamp_ns: r.anchor.stamp_ns,
+                        pose: r.anchor.locate(self.association(), gap)?,
+                    })
+                })
+                .collect();
+            let found = candidates(&self.params.candidates, q.anchor.stamp_ns, &q_pose, &placed);
+            if !found.is_empty() {
+                self.counts.queries += 1;
+                self.last_query_odom = Some(q.anchor.odom);
+            }
+            for (index, _) in found {
+                self.counts.pairs += 1;
+                match self.register_pair(index, &q)? {
+                    Some(msg) => {
+                        let msg = Registration {
+                            header: Header::new(stamp_ns, "base_link"),
+                            ..msg
+                        };
+                        out.send(self.out, &msg)?;
+                        self.counts.sent += 1;
+                    }
+                    None => self.counts.rejected += 1,
+                }
+            }
+        }
+        let keep = self.references.last().is_none_or(|r| {
+            (r.anchor.odom.x_m - q.anchor.odom.x_m).hypot(r.anchor.odom.y_m - q.anchor.odom.y_m)
+                >= self.params.reference_spacing_m
+        });
+        if keep {
+            self.references.push(q);
+        }
+        Ok(())
+    }
+
+    /// The registration of query `q` against reference `index`, or `None` when the method's
+    /// gate refuses it.
+    fn register_pair(&self, index: usize, q: &Entry) -> std::result::Result<Option<Registration>, StageError> {
+        let r = &self.references[index];
+        let (shift_m, score) = match self.params.method {
+            Method::Engineered => {
+                let m = match engineered_register(&r.view(), &q.view(), &self.params.engineered) {
+                    Ok(m) => m,
+                    // different shapes (a recording with two radars, say): not comparable
+                    Err(Error::Shape(why)) => {
+                        tracing::debug!(reference = r.id, query = q.id, "not registered: {why}");
+                        return Ok(None);
+                    }
+                    Err(e) => return Err(StageError::failed(e)),
+                };
+                match m {
+                    Some(m) if m.score >= self.params.min_score => (m.shift_m, m.score),
+                    _ => return Ok(None),
+                }
+            }
+            Method::Oracle => {
+                let gap = self.max_gap_ns();
+                let (Some(a), Some(b)) = (self.truth.at(r.anchor.stamp_ns, gap), self.truth.at(q.anchor.stamp_ns, gap))
+                else {
+                    return Ok(None);
+                };
+                (a.relative(&b).0, 1.0)
+            }
+        };
+        Ok(Some(registration(r, q, shift_m, score, self.params.sigma(), self.params.method.name())))
+    }
+}
+
+/// A registration of `q` against `r` with an along-track `shift_m`; the other axes get a
+/// large variance (an along-track-only measurement).
+fn registration(r: &Entry, q: &Entry, shift_m: f64, score: f64, sigma_m: f64, method: &str) -> Registration {
+    const LOOSE: f64 = 1e4;
+    let variance = sigma_m * sigma_m;
+    let mut cov = [0.0; 36];
+    for (i, v) in [variance, LOOSE, LOOSE, LOOSE, LOOSE, LOOSE].into_iter().enumerate() {
+        cov[i * 7] = v;
+    }
+    Registration {
+        header: Header::default(),
+        reference_submap: r.id,
+        query_submap: q.id,
+        reference_stamp: Time::from_ns(r.anchor.stamp_ns),
+        query_stamp: Time::from_ns(q.anchor.stamp_ns),
+        reference_from_query: Pose {
+            position: Point {
+                x: shift_m,
+                y: 0.0,
+                z: 0.0,
+            },
+            orientation: Quaternion {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                w: 1.0,
+            },
+        },
+        covariance: Covariance6(cov),
+        along_track_m: shift_m,
+        along_track_variance_m2: variance,
+        score: score as f32,
+        method: method.to_owned(),
+    }
+}
+
+fn param_error(e: Error) -> StageError {
+    match e {
+        Error::Param { key, message } => StageError::Params(ParamError {
+            path: key.split('.').map(str::to_owned).collect(),
+            message,
+        }),
+        other => StageError::failed(other),
+    }
+}
+
+impl Stage for RegisterStage {
+    type Params = RegisterParams;
+    const NAME: &'static str = "register";
+    const ABOUT: &'static str = "GPR submap registration (engineered correlation, learned model, or oracle) with loop candidates from the estimate";
+
+    fn inputs() -> InputPorts {
+        let port = |name: &str, ty: &str, optional: bool| InputSpec {
+            port: PortSpec::new(name, ty),
+            optional,
+        };
+        InputPorts::Fixed(vec![
+            port("submap", Submap::TYPE_NAME, false),
+            // the estimate, as a feedback input: where the submaps are (association: estimate)
+            port("estimate", StateEstimate::TYPE_NAME, true),
+            // ground truth: for the oracle association and the oracle method only
+            port("truth", PoseStamped::TYPE_NAME, true),
+        ])
+    }
+
+    fn outputs(_: &Self::Params) -> std::result::Result<Vec<PortSpec>, ParamError> {
+        Ok(vec![PortSpec::new("registration", Registration::TYPE_NAME)])
+    }
+
+    fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
+        params.check().map_err(param_error)?;
+        let needs_truth = params.association == Association::Truth || params.method == Method::Oracle;
+        if needs_truth && ports.input("truth").is_none() {
+            return Err(StageError::Params(ParamError {
+                path: vec!["method".into()],
+                message: "the oracle method and the truth association need the `truth` input (ground-truth poses)"
+                    .into(),
+            }));
+        }
+        if params.association == Association::Estimate && ports.input("estimate").is_none() {
+            return Err(StageError::Params(ParamError {
+                path: vec!["association".into()],
+                message: "association `estimate` needs the `estimate` input (the estimator's state, as a feedback input)"
+                    .into(),
+            }));
+        }
+        Ok(Self {
+            params,
+            out: ports.output("registration")?,
+            estimate: Track::new(),
+            truth: Track::new(),
+            pending: VecDeque::new(),
+            references: Vec::new(),
+            last_query_odom: None,
+            last_primary_ns: i64::MIN,
+            counts: Counts::default(),
+            drops: Drops::new(),
+        })
+    }
+
+    fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> std::result::Result<(), StageError> {
+        match input.name() {
+            "submap" => {
+                self.last_primary_ns = self.last_primary_ns.max(input.stamp_ns());
+                let m: Submap = input.decode()?;
+                if !m.valid {
+                    self.counts.invalid += 1;
+                } else if m.saliency < self.params.min_saliency {
+                    self.counts.not_salient += 1;
+                } else {
+                    match Entry::from_msg(&m) {
+                        Ok(e) => self.pending.push_back(e),
+                        Err(why) => self.drops.record(Self::NAME, &input, &why),
+                    }
+                }
+            }
+            "truth" => {
+                self.last_primary_ns = self.last_primary_ns.max(input.stamp_ns());
+                let m: PoseStamped = input.decode()?;
+                if let Err(e) = self.truth.insert(m.header.stamp.to_ns(), planar_of(&m.pose)) {
+                    self.drops.record(Self::NAME, &input, &e.to_string());
+                }
+            }
+            "estimate" => {
+                let m: StateEstimate = input.decode()?;
+                if let Err(e) = self.estimate.insert(m.header.stamp.to_ns(), planar_of(&m.world_from_body.pose)) {
+                    self.drops.record(Self::NAME, &input, &e.to_string());
+                }
+                // Registrations go out on primary inputs only: a feedback message's stamp is
+                // older than the output watermark.
+                return Ok(());
+            }
+            _ => return Ok(()),
+        }
+        self.process_pending(self.last_primary_ns, out, false)
+    }
+
+    fn finish(&mut self, out: &mut Outputs) -> std::result::Result<(), StageError> {
+        if self.last_primary_ns > i64::MIN {
+            self.process_pending(self.last_primary_ns, out, true)?;
+        }
+        let c = &self.counts;
+        tracing::info!(
+            sent = c.sent,
+            pairs = c.pairs,
+            queries = c.queries,
+            rejected = c.rejected,
+            references = self.references.len(),
+            invalid = c.invalid,
+            not_salient = c.not_salient,
+            never_placed = c.never_placed,
+            "register ({}): {} registrations from {} candidate pairs ({} refused by the method's gate)",
+            self.params.method.name(),
+            c.sent,
+            c.pairs,
+            c.rejected
+        );
+        self.drops.report(Self::NAME);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ground_order_reverses_columns_of_backward_submaps() {
+        let px: Vec<f32> = (0..6).map(|v| v as f32).collect();
+        assert_eq!(ground_order(&px, 2, 3, false), px);
+        assert_eq!(ground_order(&px, 2, 3, true), vec![2.0, 1.0, 0.0, 5.0, 4.0, 3.0]);
+    }
+
+    #[test]
+    fn params_are_checked() {
+        assert!(RegisterParams::default().check().is_ok());
+        let bad = RegisterParams {
+            min_score: 2.0,
+            ..RegisterParams::default()
+        };
+        assert!(matches!(bad.check(), Err(Error::Param { key: "min_score", .. })));
+        let bad = RegisterParams {
+            sigma_m: Some(-1.0),
+            ..RegisterParams::default()
+        };
+        assert!(matches!(bad.check(), Err(Error::Param { key: "sigma_m", .. })));
+        assert_eq!(RegisterParams::default().sigma(), 0.1);
+    }
+
+    #[test]
+    fn registration_carries_the_along_track_variance_in_x() {
+        let e = |id, stamp_ns| Entry {
+            id,
+            anchor: Anchor {
+                stamp_ns,
+                odom: Planar { x_m: 0.0, y_m: 0.0, yaw_rad: 0.0 },
+                odom_start: Planar { x_m: 0.0, y_m: 0.0, yaw_rad: 0.0 },
+                start_stamp_ns: stamp_ns,
+                backward: false,
+            },
+            rows: 1,
+            cols: 1,
+            resolution_m: 0.01,
+            pixels: vec![0.0],
+        };
+        let m = registration(&e(3, 10), &e(9, 20), 0.25, 0.8, 0.1, "engineered");
+        assert_eq!((m.reference_submap, m.query_submap), (3, 9));
+        assert_eq!((m.reference_stamp.to_ns(), m.query_stamp.to_ns()), (10, 20));
+        assert!((m.covariance.0[0] - 0.01).abs() < 1e-15 && m.covariance.0[7] > 1.0);
+        assert_eq!(m.reference_from_query.position.x, 0.25);
+    }
+}
