@@ -14,6 +14,7 @@
 //! their submap; each carries the two anchor stamps, which is what the estimator uses.
 
 use std::collections::VecDeque;
+use std::path::PathBuf;
 
 use gprflow::msg::{
     Covariance6, Header, Message, Point, Pose, PoseStamped, Quaternion, Registration, StateEstimate, Submap, Time,
@@ -24,6 +25,7 @@ use gprflow::stage::{
 
 use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
+use crate::learned::{Features, Model};
 use crate::{Error, Result};
 
 /// How a candidate pair is registered.
@@ -32,6 +34,8 @@ use crate::{Error, Result};
 pub enum Method {
     /// Pearson correlation of the submaps over the along-track shift (eq. 4.2-4.3).
     Engineered,
+    /// The learned model: ONNX encoder, spatial correlation and head (§4.5; tools/train/SPEC.md).
+    Learned,
     /// The ground-truth transform (needs the `truth` input; evaluation only).
     Oracle,
 }
@@ -40,6 +44,7 @@ impl Method {
     fn name(self) -> &'static str {
         match self {
             Self::Engineered => "engineered",
+            Self::Learned => "learned",
             Self::Oracle => "oracle",
         }
     }
@@ -67,12 +72,21 @@ pub struct RegisterParams {
     pub candidates: CandidateGates,
     /// The engineered method's search.
     pub engineered: EngineeredParams,
+    /// The learned model's encoder (default stages/register/models/ground_encoding.onnx).
+    pub model: PathBuf,
+    /// The learned model's head (default stages/register/models/ground_encoding.head.json;
+    /// ground_encoding.nonlinear.json is the nonlinear one).
+    pub head: PathBuf,
+    /// ONNX Runtime library (default: from tools/scripts/ensure-onnxruntime.sh, see
+    /// [`crate::learned::onnxruntime_library`]).
+    pub onnxruntime: Option<PathBuf>,
     /// Smallest peak correlation the engineered method accepts (default 0.3).
     pub min_score: f64,
     /// Smallest saliency (average-pooled row-wise standard deviation) of a submap that is
     /// registered at all (default 0: every valid submap).
     pub min_saliency: f32,
-    /// Along-track sigma sent with each registration, m (default: 0.1 engineered, 0.02 oracle).
+    /// Along-track sigma sent with each registration, m (default: 0.1 engineered, the head's
+    /// `sigma_m` learned, 0.02 oracle).
     pub sigma_m: Option<f64>,
     /// Keep a reference every this much travel, m (default 0.3).
     pub reference_spacing_m: f64,
@@ -89,6 +103,9 @@ impl Default for RegisterParams {
             association: Association::Estimate,
             candidates: CandidateGates::default(),
             engineered: EngineeredParams::default(),
+            model: PathBuf::from("stages/register/models/ground_encoding.onnx"),
+            head: PathBuf::from("stages/register/models/ground_encoding.head.json"),
+            onnxruntime: None,
             min_score: 0.3,
             min_saliency: 0.0,
             sigma_m: None,
@@ -133,9 +150,11 @@ impl RegisterParams {
         Ok(())
     }
 
-    fn sigma(&self) -> f64 {
+    /// The sigma sent: the parameter, else the method's (`learned`: the model's own).
+    fn sigma(&self, learned_sigma_m: Option<f64>) -> f64 {
         self.sigma_m.unwrap_or(match self.method {
             Method::Engineered => 0.1,
+            Method::Learned => learned_sigma_m.unwrap_or(0.1),
             Method::Oracle => 0.02,
         })
     }
@@ -168,6 +187,8 @@ struct Entry {
     cols: usize,
     resolution_m: f64,
     pixels: Vec<f32>,
+    /// The learned model's features (encoded once, on arrival).
+    features: Option<Features>,
 }
 
 impl Entry {
@@ -212,6 +233,7 @@ impl Entry {
             cols,
             resolution_m: m.resolution_m,
             pixels: ground_order(&m.pixels, rows, cols, backward),
+            features: None,
         })
     }
 }
@@ -232,6 +254,7 @@ struct Counts {
 #[derive(Debug)]
 pub struct RegisterStage {
     params: RegisterParams,
+    model: Option<Model>,
     out: Output<Registration>,
     estimate: Track,
     truth: Track,
@@ -330,8 +353,9 @@ impl RegisterStage {
 
     /// The registration of query `q` against reference `index`, or `None` when the method's
     /// gate refuses it.
-    fn register_pair(&self, index: usize, q: &Entry) -> std::result::Result<Option<Registration>, StageError> {
+    fn register_pair(&mut self, index: usize, q: &Entry) -> std::result::Result<Option<Registration>, StageError> {
         let r = &self.references[index];
+        let mut learned_sigma = None;
         let (shift_m, score) = match self.params.method {
             Method::Engineered => {
                 let m = match engineered_register(&r.view(), &q.view(), &self.params.engineered) {
@@ -348,6 +372,17 @@ impl RegisterStage {
                     _ => return Ok(None),
                 }
             }
+            Method::Learned => {
+                let (Some(model), Some(fr), Some(fq)) = (self.model.as_mut(), r.features.as_ref(), q.features.as_ref())
+                else {
+                    return Ok(None);
+                };
+                learned_sigma = Some(model.head.sigma_m);
+                match model.register(fr, fq, q.resolution_m).map_err(StageError::failed)? {
+                    Some(m) => (m.shift_m, m.share_score),
+                    None => return Ok(None),
+                }
+            }
             Method::Oracle => {
                 let gap = self.max_gap_ns();
                 let (Some(a), Some(b)) = (self.truth.at(r.anchor.stamp_ns, gap), self.truth.at(q.anchor.stamp_ns, gap))
@@ -357,7 +392,8 @@ impl RegisterStage {
                 (a.relative(&b).0, 1.0)
             }
         };
-        Ok(Some(registration(r, q, shift_m, score, self.params.sigma(), self.params.method.name())))
+        let sigma = self.params.sigma(learned_sigma);
+        Ok(Some(registration(r, q, shift_m, score, sigma, self.params.method.name())))
     }
 }
 
@@ -447,8 +483,26 @@ impl Stage for RegisterStage {
                     .into(),
             }));
         }
+        let model = match params.method {
+            Method::Learned => Some(
+                Model::load(&params.model, &params.head, params.onnxruntime.as_deref()).map_err(StageError::failed)?,
+            ),
+            _ => None,
+        };
+        if let Some(m) = &model {
+            tracing::info!(
+                model = %params.model.display(),
+                head = %params.head.display(),
+                "register: learned model, {} channels, column stride {}, share threshold {}, sigma {} m",
+                m.head.channels,
+                m.head.column_stride,
+                m.head.share_threshold,
+                m.head.sigma_m
+            );
+        }
         Ok(Self {
             params,
+            model,
             out: ports.output("registration")?,
             estimate: Track::new(),
             truth: Track::new(),
@@ -472,7 +526,12 @@ impl Stage for RegisterStage {
                     self.counts.not_salient += 1;
                 } else {
                     match Entry::from_msg(&m) {
-                        Ok(e) => self.pending.push_back(e),
+                        Ok(mut e) => {
+                            if let Some(model) = self.model.as_mut() {
+                                e.features = Some(model.encode(&e.view()).map_err(StageError::failed)?);
+                            }
+                            self.pending.push_back(e);
+                        }
                         Err(why) => self.drops.record(Self::NAME, &input, &why),
                     }
                 }
@@ -547,7 +606,12 @@ mod tests {
             ..RegisterParams::default()
         };
         assert!(matches!(bad.check(), Err(Error::Param { key: "sigma_m", .. })));
-        assert_eq!(RegisterParams::default().sigma(), 0.1);
+        assert_eq!(RegisterParams::default().sigma(Some(0.03)), 0.1);
+        let learned = RegisterParams {
+            method: Method::Learned,
+            ..RegisterParams::default()
+        };
+        assert_eq!(learned.sigma(Some(0.03)), 0.03);
     }
 
     #[test]
@@ -565,6 +629,7 @@ mod tests {
             cols: 1,
             resolution_m: 0.01,
             pixels: vec![0.0],
+            features: None,
         };
         let m = registration(&e(3, 10), &e(9, 20), 0.25, 0.8, 0.1, "engineered");
         assert_eq!((m.reference_submap, m.query_submap), (3, 9));
