@@ -50,6 +50,10 @@ pub struct EstimateParams {
     pub nonholonomic_sigma_mps: f64,
     /// Publish Trajectory and LineMap snapshots every this many states (default 10).
     pub snapshot_every_states: u64,
+    /// Loop-closure full re-solves on a background thread (default true). `false` solves them
+    /// in the update that needs one: slower, but the same input always gives the same output
+    /// (what evaluation runs and regression diffs need).
+    pub background_solves: bool,
 }
 
 impl Default for EstimateParams {
@@ -71,6 +75,7 @@ impl Default for EstimateParams {
             line_min_baseline_m: o.line_min_baseline_m,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             snapshot_every_states: 10,
+            background_solves: o.smoother.background,
         }
     }
 }
@@ -81,6 +86,7 @@ impl EstimateParams {
             state_rate_hz: self.state_rate_hz,
             smoother: SmootherParams {
                 lag_states: self.lag_states,
+                background: self.background_solves,
                 ..SmootherParams::default()
             },
             imu: ImuParams {

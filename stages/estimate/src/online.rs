@@ -294,6 +294,18 @@ impl OnlineEstimator {
         if i == j {
             return Ok(false);
         }
+        // The measurement relates the two submap stamps; the factor relates the nearest
+        // states, up to half a state period away. Move each end along track by the state's
+        // current forward speed times the stamp difference (at 0.5 m/s and 10 Hz states the
+        // uncorrected error reaches 2.5 cm per end).
+        let forward_m = |state: usize, stamp_ns: i64| -> Result<f64> {
+            let keys = &self.states[state];
+            let pose = self.values.pose(keys.pose)?;
+            let v_body = pose.rot.transpose() * self.values.velocity(keys.velocity)?;
+            Ok(v_body.x * (self.stamps_ns[state] - stamp_ns) as f64 * 1e-9)
+        };
+        let along_track_m =
+            r.along_track_m + forward_m(j, r.query_stamp_ns)? - forward_m(i, r.reference_stamp_ns)?;
         let (pi, pj) = (self.states[i].pose, self.states[j].pose);
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
             k: self.params.registration_huber_k,
@@ -314,7 +326,7 @@ impl OnlineEstimator {
             if let Some(k) = huber {
                 noise = noise.robust(k);
             }
-            self.graph.add(AlongTrack::new(pi, pj, r.along_track_m, noise)?);
+            self.graph.add(AlongTrack::new(pi, pj, along_track_m, noise)?);
         }
         Ok(true)
     }
