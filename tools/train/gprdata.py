@@ -216,6 +216,12 @@ class Pairs:
     def __len__(self):
         return len(self.target_m)
 
+    def gather(self, per_run, sel):
+        """``(reference, query)`` stacks of ``per_run[run][index]`` for the pairs ``sel``."""
+        ref = np.stack([per_run[r][i] for r, i in zip(self.ref_run[sel], self.ref_index[sel])])
+        qry = np.stack([per_run[r][i] for r, i in zip(self.query_run[sel], self.query_index[sel])])
+        return ref, qry
+
     def select(self, mask):
         return Pairs(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
 
@@ -236,8 +242,8 @@ def truth_pairs(runs, rng, per_submap=4, apart_per_submap=1):
 
     For every submap and run, up to ``per_submap`` random partners from other passes (another
     run or leg) and as many from its own pass among those that pass the cross-track, heading
-    and shift rules, and ``apart_per_submap`` partners (from one run, in turn) whose anchors are more than
-    ``APART_M`` away.
+    and shift rules, and ``apart_per_submap`` partners (from one run, in turn) whose anchors
+    are more than ``APART_M`` away.
     """
     parts = []
     for ri, a in enumerate(runs):

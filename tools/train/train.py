@@ -138,15 +138,13 @@ def correlation_vector(reference, query, resolution_m, column_stride):
     return np.concatenate([tau, m])
 
 
-def correlation_vectors(features, runs_index, pairs, resolution_m, column_stride, batch=256):
+def correlation_vectors(features, pairs, resolution_m, column_stride, batch=256):
     """``v`` for every pair; ``features[run][index]`` is ``K x h x w``."""
     out = []
     w = features[0].shape[-1]
     ts, d = shifts_tried(w, resolution_m, column_stride)
     for s in range(0, len(pairs), batch):
-        sl = slice(s, s + batch)
-        ref = np.stack([features[runs_index[r]][i] for r, i in zip(pairs.ref_run[sl], pairs.ref_index[sl])])
-        qry = np.stack([features[runs_index[r]][i] for r, i in zip(pairs.query_run[sl], pairs.query_index[sl])])
+        ref, qry = pairs.gather(features, slice(s, s + batch))
         tau, m = peaks(correlation_curves_batched(ref, qry, ts), ts, d)
         out.append(np.concatenate([tau, m], axis=-1))
     return np.concatenate(out)
@@ -154,13 +152,14 @@ def correlation_vectors(features, runs_index, pairs, resolution_m, column_stride
 
 # --- model ------------------------------------------------------------------------------------
 
-def build_autoencoder(channels, column_stride):
-    """A small convolutional autoencoder: 3 stride-2-in-rows convolutions down, 3 up."""
+def build_autoencoder(channels, column_stride, levels=3):
+    """A small convolutional autoencoder: ``levels`` 3 x 3 convolutions of row stride 2 down
+    (the first one or two also of column stride 2, for ``column_stride``), 3 up."""
     import torch.nn as nn
     import torch.nn.functional as F
 
-    col = {1: (1, 1, 1), 2: (2, 1, 1), 4: (2, 2, 1)}[column_stride]
-    widths = (8, 8, channels)
+    col = ({1: (), 2: (2,), 4: (2, 2)}[column_stride] + (1,) * levels)[:levels]
+    widths = (8,) * (levels - 1) + (channels,)
 
     class Encoder(nn.Module):
         def __init__(self):
@@ -182,7 +181,8 @@ def build_autoencoder(channels, column_stride):
 
         def __init__(self):
             super().__init__()
-            self.convs = nn.ModuleList([nn.Conv2d(channels, 8, 3, padding=1), nn.Conv2d(8, 8, 3, padding=1)])
+            ins = (channels,) + (8,) * (levels - 2)
+            self.convs = nn.ModuleList(nn.Conv2d(i, 8, 3, padding=1) for i in ins)
             self.out = nn.Conv2d(8, 1, 3, padding=1)
 
         def forward(self, features, sizes):
@@ -284,19 +284,22 @@ def stretch_rows(images, scale):
     return torch.stack(out)
 
 
-def fine_tune(model, images, pairs, mask, resolution_m, column_stride, steps, batch, lr, rng, recon_weight=1.0,
-              temperature=0.02):
+def fine_tune(model, images, pairs, mask, apart_mask, resolution_m, column_stride, steps, batch, lr, rng, recon_weight=1.0,
+              temperature=0.02, apart_weight=0.1, apart_margin=0.5):
     """Registration fine-tuning of the encoder through a soft argmax of the correlation curves.
 
     The argmax of SPEC is not differentiable; here each channel's curve becomes a softmax
     (``temperature``) over the shifts and its expected shift is pulled to the target (Huber),
     with the L1 reconstruction kept as a regulariser. Queries are augmented with a random
     travel-time stretch (soil moisture) and noise. Staged as in the thesis: the heads are fit
-    afterwards on the hard correlation vectors.
+    afterwards on the hard correlation vectors. Pairs that share no ground (``apart_mask``) are
+    pushed below ``apart_margin`` peak correlation, so that ``share_threshold`` separates them.
     """
     import torch
 
     idx = np.flatnonzero(mask)
+    cross = np.flatnonzero(mask & pairs.cross_pass & (pairs.kind == "truth"))
+    apart = np.flatnonzero(apart_mask)
     w = math.ceil(images[0].shape[-1] / column_stride)
     ts, d = shifts_tried(w, resolution_m, column_stride)
     shift_m = torch.from_numpy(ts * d)
@@ -305,9 +308,11 @@ def fine_tune(model, images, pairs, mask, resolution_m, column_stride, steps, ba
     huber = torch.nn.HuberLoss(delta=HUBER_DELTA_M)
     model.train()
     for step in range(steps):
-        sel = rng.choice(idx, size=batch, replace=False)
-        ref = torch.from_numpy(np.stack([images[r][i] for r, i in zip(pairs.ref_run[sel], pairs.ref_index[sel])])[:, None])
-        qry = torch.from_numpy(np.stack([images[r][i] for r, i in zip(pairs.query_run[sel], pairs.query_index[sel])])[:, None])
+        # half the batch from other passes (other runs: other soil moisture), where it is hard
+        n_cross = batch // 2 if len(cross) else 0
+        sel = np.concatenate([rng.choice(cross, size=n_cross, replace=False),
+                              rng.choice(idx, size=batch - n_cross, replace=False)])
+        ref, qry = (torch.from_numpy(x[:, None]) for x in pairs.gather(images, sel))
         scale = np.where(rng.random(batch) < 0.5, rng.uniform(0.85, 1.18, batch), 1.0)
         qry = stretch_rows(qry, scale)
         qry = qry + float(rng.uniform(0.0, 0.3)) * torch.randn_like(qry)
@@ -318,14 +323,20 @@ def fine_tune(model, images, pairs, mask, resolution_m, column_stride, steps, ba
         soft = (torch.softmax(curves / temperature, -1) * shift_m).sum(-1)
         reg = huber(soft, target[:, None].expand_as(soft))
         recon = (rec - ref).abs().mean()
-        loss = reg + recon_weight * recon
+        # §4.5.2: submaps that share no ground should not correlate (peaks below apart_margin)
+        sel = rng.choice(apart, size=batch // 2, replace=False)
+        fa, fb = (model.encoder(torch.from_numpy(x[:, None])) for x in pairs.gather(images, sel))
+        apart_peak = torch_curves(fa, fb, ts).max(-1).values
+        share = torch.relu(apart_peak - apart_margin).mean()
+        loss = reg + recon_weight * recon + apart_weight * share
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
         if step % 25 == 0 or step + 1 == steps:
             err = (soft.detach() - target[:, None]).abs().median().item() * 100
-            log(f"fine-tune step {step}: registration {reg.item():.5f}, L1 {recon.item():.4f}, median |err| {err:.1f} cm")
+            log(f"fine-tune step {step}: registration {reg.item():.5f}, L1 {recon.item():.4f}, "
+                f"apart {share.item():.4f} (mean peak {apart_peak.mean().item():.3f}), median |err| {err:.1f} cm")
     model.eval()
 
 
@@ -386,14 +397,18 @@ def apply_head(head, v):
 
 
 def choose_share_threshold(score_overlap, score_apart):
-    """The mean peak that best separates overlapping from non-overlapping pairs (balanced)."""
-    cands = np.unique(np.concatenate([score_overlap, score_apart]))
-    best, best_acc = cands[0], -1.0
-    for t in cands[:: max(1, len(cands) // 2000)]:
-        acc = 0.5 * ((score_overlap >= t).mean() + (score_apart < t).mean())
-        if acc > best_acc:
-            best, best_acc = t, acc
-    return float(best), float(best_acc)
+    """The mean peak that best separates overlapping from non-overlapping pairs (balanced
+    accuracy); the middle of the best interval of thresholds, not its edge."""
+    scores = np.unique(np.concatenate([score_overlap, score_apart]))
+    over, apart = np.sort(score_overlap), np.sort(score_apart)
+    # a threshold t in (scores[i - 1], scores[i]] accepts the same pairs as scores[i]
+    acc = 0.5 * ((1.0 - np.searchsorted(over, scores, "left") / len(over))
+                 + np.searchsorted(apart, scores, "left") / len(apart))
+    start = end = int(np.argmax(acc))
+    while end + 1 < len(acc) and acc[end + 1] == acc[start]:
+        end += 1
+    low = scores[start - 1] if start > 0 else scores[start]
+    return float(0.5 * (low + scores[end])), float(acc[start])
 
 
 def errors_cm(pred, target):
@@ -411,13 +426,14 @@ def parse_args():
     p.add_argument("--spacing-m", type=float, default=0.1, help="submap spacing for graphs/submaps.yaml")
     p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2"])
     p.add_argument("--val-scenario", default="training_3")
-    p.add_argument("--channels", type=int, default=8, help="K, encoder output channels")
+    p.add_argument("--channels", type=int, default=12, help="K, encoder output channels")
+    p.add_argument("--levels", type=int, default=4, help="encoder convolutions (row stride 2 each)")
     p.add_argument("--column-stride", type=int, default=2, choices=(1, 2, 4))
     p.add_argument("--epochs", type=int, default=3)
     p.add_argument("--ae-samples", type=int, default=1600, help="submaps per autoencoder epoch")
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr", type=float, default=3e-3)
-    p.add_argument("--finetune-steps", type=int, default=150, help="registration fine-tuning steps (0: none)")
+    p.add_argument("--finetune-steps", type=int, default=400, help="registration fine-tuning steps (0: none)")
     p.add_argument("--compare-pretrained", action=argparse.BooleanOptionalAction, default=True,
                    help="also fit and validate heads on the pre-trained encoder alone")
     p.add_argument("--finetune-batch", type=int, default=8)
@@ -494,7 +510,7 @@ def main():
 
     # §4.5.1: autoencoder on the training scenarios' submaps
     train_images = np.concatenate([im for im, v in zip(images, val_run) if not v])
-    ae = build_autoencoder(args.channels, args.column_stride)
+    ae = build_autoencoder(args.channels, args.column_stride, args.levels)
     t = time.time()
     pick = rng.choice(len(train_images), size=min(args.ae_samples, len(train_images)), replace=False)
     pretrain(ae, train_images[pick], args.epochs, args.batch, args.lr, rng)
@@ -513,7 +529,8 @@ def main():
     finetune_seconds = 0.0
     if args.finetune_steps > 0:
         t = time.time()
-        fine_tune(ae, images, pairs, (pairs.kind != "apart") & ~is_val, resolution_m, args.column_stride,
+        fine_tune(ae, images, pairs, (pairs.kind != "apart") & ~is_val, (pairs.kind == "apart") & ~is_val,
+                  resolution_m, args.column_stride,
                   args.finetune_steps, args.finetune_batch, args.finetune_lr, rng)
         finetune_seconds = time.time() - t
     val_l1_tuned = heldout_l1(ae, val_images)
@@ -561,9 +578,11 @@ def fit_and_validate(encoder, images, pairs, is_val, resolution_m, engineered, a
     k, h, w = features[0].shape[1:]
     if w != math.ceil(images[0].shape[-1] / args.column_stride):
         sys.exit(f"encoder width {w} is not ceil(cols / column_stride)")
-    v = correlation_vectors(features, np.arange(len(images)), pairs, resolution_m, args.column_stride)
+    v = correlation_vectors(features, pairs, resolution_m, args.column_stride)
     del features
     log(f"features K={k} h={h} w={w}; correlation vectors {v.shape} ({time.time() - t:.0f} s)")
+    np.savez(os.path.join(args.cache_dir, "last-correlation-vectors.npz"), v=v, is_val=is_val,
+             **{f: getattr(pairs, f) for f in pairs.__dataclass_fields__})
 
     overlap = pairs.kind != "apart"
     train_fit = overlap & ~is_val
@@ -594,7 +613,8 @@ def fit_and_validate(encoder, images, pairs, is_val, resolution_m, engineered, a
     val_truth = is_val & (pairs.kind == "truth")
     shares = mean_peak >= share_threshold
     subsets = {"all": val_truth, "cross_pass": val_truth & pairs.cross_pass,
-               "same_pass": val_truth & ~pairs.cross_pass, "shared": val_truth & shares,
+               "same_pass": val_truth & ~pairs.cross_pass,
+               "other_run": val_truth & (pairs.ref_run != pairs.query_run), "shared": val_truth & shares,
                "cross_pass_shared": val_truth & pairs.cross_pass & shares}
     preds = {"engineered": engineered, "zeroth": np.full(len(pairs), zeroth),
              "linear": apply_head(heads["linear"], v), "nonlinear": apply_head(heads["nonlinear"], v)}
@@ -624,8 +644,7 @@ def engineered_baseline(images, pairs, mask, resolution_m, batch=64):
     ts, d = shifts_tried(w, resolution_m, 1)
     for s in range(0, len(idx), batch):
         sl = idx[s:s + batch]
-        ref = np.stack([images[r][i] for r, i in zip(pairs.ref_run[sl], pairs.ref_index[sl])])[:, None]
-        qry = np.stack([images[r][i] for r, i in zip(pairs.query_run[sl], pairs.query_index[sl])])[:, None]
+        ref, qry = (x[:, None] for x in pairs.gather(images, sl))
         tau, _ = peaks(correlation_curves_batched(ref, qry, ts), ts, d)
         out[sl] = tau[:, 0]
     return out
@@ -707,18 +726,24 @@ def write_fixtures(args, sess, heads, runs, pairs, is_val, resolution_m):
     wanted = (
         ("same_leg_shift", "one leg of one pass (held-out scenario), a known shift (truth target)",
          is_val & (pairs.kind == "truth") & ~pairs.cross_pass & (np.abs(pairs.target_m) > 0.3)),
-        ("different_passes", "different passes over the same ground (held-out scenario)",
-         is_val & (pairs.kind == "truth") & pairs.cross_pass & (np.abs(pairs.target_m) > 0.2)),
+        ("different_passes", "different runs (other soil moisture) over the same ground (held-out scenario)",
+         is_val & (pairs.kind == "truth") & (pairs.ref_run != pairs.query_run) & (np.abs(pairs.target_m) > 0.2)),
         ("non_overlapping", "anchors more than 4 m apart: no shared ground",
          is_val & (pairs.kind == "apart")),
     )
     cases = []
     for name, description, mask in wanted:
-        for j in rng.permutation(np.flatnonzero(mask)):
-            case = fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non)
+        case = None
+        # a pair the model registers (or rejects) correctly, when there is one
+        for want_right in (True, False):
+            for j in rng.permutation(np.flatnonzero(mask))[:400]:
+                case = fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non)
+                if case is not None and (not want_right or registered_right(case[0])):
+                    break
+                case = None
             if case is not None:
                 break
-        else:
+        if case is None:
             sys.exit(f"no fixture for {name}")
         entry, arrays = case
         entry = dict(name=name, description=description, **entry)
@@ -744,6 +769,14 @@ def write_fixtures(args, sess, heads, runs, pairs, is_val, resolution_m):
 
 
 PEAK_MARGIN = 1e-4
+RIGHT_M = 0.03
+
+
+def registered_right(entry):
+    """Registered within ``RIGHT_M`` of the truth, or rejected when there is no truth."""
+    if entry["target_m"] is None:
+        return not entry["shares"]
+    return entry["shares"] and abs(entry["linear_m"] - entry["target_m"]) < RIGHT_M
 
 
 def fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non):
