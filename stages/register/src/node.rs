@@ -25,7 +25,7 @@ use gprflow::stage::{
 
 use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
-use crate::learned::{Features, Model};
+use crate::learned::{Features, Head, Model};
 use crate::{Error, Result};
 
 /// How a candidate pair is registered.
@@ -38,6 +38,9 @@ pub enum Method {
     Learned,
     /// The ground-truth transform (needs the `truth` input; evaluation only).
     Oracle,
+    /// The zeroth-order model of Table 4.1: always the mean shift of the learned model's
+    /// training pairs (the head's `zeroth_m`); a baseline for evaluation only.
+    Zeroth,
 }
 
 impl Method {
@@ -46,6 +49,7 @@ impl Method {
             Self::Engineered => "engineered",
             Self::Learned => "learned",
             Self::Oracle => "oracle",
+            Self::Zeroth => "zeroth",
         }
     }
 }
@@ -155,7 +159,7 @@ impl RegisterParams {
         self.sigma_m.unwrap_or(match self.method {
             Method::Engineered => 0.1,
             Method::Learned => learned_sigma_m.unwrap_or(0.1),
-            Method::Oracle => 0.02,
+            Method::Oracle | Method::Zeroth => 0.02,
         })
     }
 }
@@ -255,6 +259,8 @@ struct Counts {
 pub struct RegisterStage {
     params: RegisterParams,
     model: Option<Model>,
+    /// The zeroth-order model's constant shift, m.
+    zeroth_m: Option<f64>,
     out: Output<Registration>,
     estimate: Track,
     truth: Track,
@@ -383,6 +389,10 @@ impl RegisterStage {
                     None => return Ok(None),
                 }
             }
+            Method::Zeroth => match self.zeroth_m {
+                Some(z) => (z, 0.0),
+                None => return Ok(None),
+            },
             Method::Oracle => {
                 let gap = self.max_gap_ns();
                 let (Some(a), Some(b)) = (self.truth.at(r.anchor.stamp_ns, gap), self.truth.at(q.anchor.stamp_ns, gap))
@@ -489,6 +499,10 @@ impl Stage for RegisterStage {
             ),
             _ => None,
         };
+        let zeroth_m = match params.method {
+            Method::Zeroth => Some(Head::from_json(&params.head).map_err(StageError::failed)?.zeroth_m),
+            _ => None,
+        };
         if let Some(m) = &model {
             tracing::info!(
                 model = %params.model.display(),
@@ -503,6 +517,7 @@ impl Stage for RegisterStage {
         Ok(Self {
             params,
             model,
+            zeroth_m,
             out: ports.output("registration")?,
             estimate: Track::new(),
             truth: Track::new(),
