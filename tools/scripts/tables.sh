@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# Reproduces seed 000 Table 4.1 (registration error per model and environment, cm) and
+# Fig. 4.14 (ATE per environment for odometry, engineered, learned and oracle) on the
+# simulator's evaluation worlds, and writes both tables into README.md between the
+# `tables:begin` / `tables:end` markers.
+#
+# Every localisation run uses graphs/localize.yaml with the oracle association (ground-truth
+# loop candidates), so that all models see the same pairs (§4.8.4), and the same
+# registration sigma. Registration errors come from `gprflow eval` (each registration
+# against the truth's relative pose between its two anchor stamps).
+#
+#   tools/scripts/tables.sh            # about 15 minutes on 2 cores
+#   tools/scripts/tables.sh --no-readme  # print only
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+write_readme=1
+[[ "${1:-}" == "--no-readme" ]] && write_readme=0
+tools/scripts/ensure-onnxruntime.sh > /dev/null
+cargo build --release -p gprflow-cli
+g=./target/release/gprflow
+out=out/tables
+mkdir -p "$out"
+
+# environment name, scenario, run
+worlds=(
+    "basement tools/sim/scenarios/basement.yaml forward_backward"
+    "factory_floor tools/sim/scenarios/factory_floor.yaml forward_backward"
+    "parking_garage tools/sim/scenarios/parking_garage.yaml loops"
+)
+models=(engineered zeroth learned nonlinear oracle)
+
+for w in "${worlds[@]}"; do
+    read -r name scenario run <<< "$w"
+    rec="$out/$name-$run.mcap"
+    [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" > /dev/null
+    $g launch graphs/odometry.yaml --set recording="$rec" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
+    $g eval "$out/$name-odometry.mcap" --truth "$rec" --format json > "$out/$name-odometry.json"
+    for m in "${models[@]}"; do
+        method=$m
+        extra=()
+        if [[ $m == nonlinear ]]; then
+            method=learned
+            extra=(--set head=stages/register/models/ground_encoding.nonlinear.json)
+        fi
+        $g launch graphs/localize.yaml --set recording="$rec" --set method="$method" --set association=truth \
+            "${extra[@]}" --record "$out/$name-$m.mcap" > "$out/$name-$m.log" 2>&1
+        $g eval "$out/$name-$m.mcap" --truth "$rec" --format json > "$out/$name-$m.json"
+        echo "$name $m done" >&2
+    done
+done
+
+python3 - "$out" "$write_readme" <<'EOF'
+import json, math, pathlib, re, sys
+out, write = pathlib.Path(sys.argv[1]), sys.argv[2] == "1"
+worlds = ["basement", "factory_floor", "parking_garage"]
+models = ["engineered", "zeroth", "learned", "nonlinear", "oracle"]
+def load(w, m):
+    return json.loads((out / f"{w}-{m}.json").read_text())
+lines = ["Registration error (RMSE of the along-track error against the truth, cm; pairs from the oracle association; n = registrations):", "",
+         "| model | " + " | ".join(worlds) + " | combined |", "|---|" + "---|" * (len(worlds) + 1)]
+for m in models:
+    cells, sq, n = [], 0.0, 0
+    for w in worlds:
+        r = load(w, m).get("registration")
+        if not r:
+            cells.append("-")
+            continue
+        a = r["along_track"]
+        cells.append(f"{100 * a['rmse']:.2f} (n={a['count']})")
+        sq += a["rmse"] ** 2 * a["count"]
+        n += a["count"]
+    comb = f"{100 * math.sqrt(sq / n):.2f}" if n else "-"
+    label = {"learned": "learned linear", "nonlinear": "learned nonlinear"}.get(m, m)
+    lines.append(f"| {label} | " + " | ".join(cells) + f" | {comb} |")
+lines += ["", "ATE (RMSE of the final trajectory against the truth, m, no alignment):", "",
+          "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
+for m in ["odometry", "engineered", "learned", "oracle"]:
+    lines.append(f"| {m} | " + " | ".join(f"{load(w, m)['ate']['rmse']:.3f}" for w in worlds) + " |")
+table = "\n".join(lines)
+print(table)
+if write:
+    readme = pathlib.Path("README.md")
+    text = readme.read_text()
+    begin, end = "<!-- tables:begin -->", "<!-- tables:end -->"
+    if begin not in text:
+        sys.exit("README.md has no tables:begin marker")
+    text = re.sub(re.escape(begin) + ".*?" + re.escape(end), begin + "\n" + table + "\n" + end, text, flags=re.S)
+    readme.write_text(text)
+    print("README.md updated", file=sys.stderr)
+EOF
