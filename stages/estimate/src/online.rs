@@ -304,8 +304,7 @@ impl OnlineEstimator {
             let v_body = pose.rot.transpose() * self.values.velocity(keys.velocity)?;
             Ok(v_body.x * (self.stamps_ns[state] - stamp_ns) as f64 * 1e-9)
         };
-        let along_track_m =
-            r.along_track_m + forward_m(j, r.query_stamp_ns)? - forward_m(i, r.reference_stamp_ns)?;
+        let along_track_m = r.along_track_m + forward_m(j, r.query_stamp_ns)? - forward_m(i, r.reference_stamp_ns)?;
         let (pi, pj) = (self.states[i].pose, self.states[j].pose);
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
             k: self.params.registration_huber_k,

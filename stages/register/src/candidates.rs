@@ -239,7 +239,11 @@ pub fn candidates(gates: &CandidateGates, query_stamp_ns: i64, query: &Planar, r
         })
         .collect();
     found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    found.into_iter().take(gates.per_query).map(|(_, i, along)| (i, along)).collect()
+    found
+        .into_iter()
+        .take(gates.per_query)
+        .map(|(_, i, along)| (i, along))
+        .collect()
 }
 
 #[cfg(test)]
@@ -269,8 +273,14 @@ mod tests {
     fn wrap_stays_in_range_and_keeps_the_angle() {
         for a in [-10.0, -std::f64::consts::PI, 0.0, 3.2, 7.0, std::f64::consts::PI] {
             let w = wrap(a);
-            assert!(w > -std::f64::consts::PI && w <= std::f64::consts::PI + 1e-12, "{a} -> {w}");
-            assert!((w.sin() - a.sin()).abs() < 1e-12 && (w.cos() - a.cos()).abs() < 1e-12, "{a} -> {w}");
+            assert!(
+                w > -std::f64::consts::PI && w <= std::f64::consts::PI + 1e-12,
+                "{a} -> {w}"
+            );
+            assert!(
+                (w.sin() - a.sin()).abs() < 1e-12 && (w.cos() - a.cos()).abs() < 1e-12,
+                "{a} -> {w}"
+            );
         }
     }
 
@@ -309,24 +319,58 @@ mod tests {
     #[test]
     fn gates_pick_the_nearest_reference_on_the_same_line() {
         let refs = [
-            Placed { index: 0, stamp_ns: 0, pose: p(0.0, 0.0, 0.0) },
-            Placed { index: 1, stamp_ns: 0, pose: p(0.6, 0.05, 0.0) },
+            Placed {
+                index: 0,
+                stamp_ns: 0,
+                pose: p(0.0, 0.0, 0.0),
+            },
+            Placed {
+                index: 1,
+                stamp_ns: 0,
+                pose: p(0.6, 0.05, 0.0),
+            },
             // across the line
-            Placed { index: 2, stamp_ns: 0, pose: p(0.9, 0.5, 0.0) },
+            Placed {
+                index: 2,
+                stamp_ns: 0,
+                pose: p(0.9, 0.5, 0.0),
+            },
             // facing the other way
-            Placed { index: 3, stamp_ns: 0, pose: p(0.9, 0.0, 180.0) },
+            Placed {
+                index: 3,
+                stamp_ns: 0,
+                pose: p(0.9, 0.0, 180.0),
+            },
             // too recent
-            Placed { index: 4, stamp_ns: 90_000_000_000, pose: p(0.9, 0.0, 0.0) },
+            Placed {
+                index: 4,
+                stamp_ns: 90_000_000_000,
+                pose: p(0.9, 0.0, 0.0),
+            },
             // too far along
-            Placed { index: 5, stamp_ns: 0, pose: p(-0.5, 0.0, 0.0) },
+            Placed {
+                index: 5,
+                stamp_ns: 0,
+                pose: p(-0.5, 0.0, 0.0),
+            },
         ];
-        let g = CandidateGates { per_query: 3, ..CandidateGates::default() };
+        let g = CandidateGates {
+            per_query: 3,
+            ..CandidateGates::default()
+        };
         let found = candidates(&g, 100_000_000_000, &p(0.8, 0.0, 2.0), &refs);
         let ids: Vec<usize> = found.iter().map(|f| f.0).collect();
         assert_eq!(ids, vec![1, 0]);
         assert!((found[0].1 - 0.2).abs() < 1e-9);
         assert!(g.check().is_ok());
-        assert!(CandidateGates { max_cross_m: f64::NAN, ..g.clone() }.check().is_err());
+        assert!(
+            CandidateGates {
+                max_cross_m: f64::NAN,
+                ..g.clone()
+            }
+            .check()
+            .is_err()
+        );
         assert!(CandidateGates { per_query: 0, ..g }.check().is_err());
     }
 }

@@ -218,7 +218,10 @@ impl Entry {
             return Err(format!("resolution_m: {}", m.resolution_m));
         }
         if !(m.start_distance_m.is_finite() && m.end_distance_m.is_finite()) {
-            return Err(format!("start/end_distance_m: {} / {}", m.start_distance_m, m.end_distance_m));
+            return Err(format!(
+                "start/end_distance_m: {} / {}",
+                m.start_distance_m, m.end_distance_m
+            ));
         }
         let backward = m.end_distance_m < m.start_distance_m;
         let (start, end) = (planar_of(&m.start_pose), planar_of(&m.end_pose));
@@ -311,9 +314,9 @@ impl RegisterStage {
             self.counts.never_placed += 1;
             return Ok(());
         };
-        let spaced = self
-            .last_query_odom
-            .is_none_or(|p| (p.x_m - q.anchor.odom.x_m).hypot(p.y_m - q.anchor.odom.y_m) >= self.params.query_spacing_m);
+        let spaced = self.last_query_odom.is_none_or(|p| {
+            (p.x_m - q.anchor.odom.x_m).hypot(p.y_m - q.anchor.odom.y_m) >= self.params.query_spacing_m
+        });
         if spaced {
             let placed: Vec<Placed> = self
                 .references
@@ -395,15 +398,24 @@ impl RegisterStage {
             },
             Method::Oracle => {
                 let gap = self.max_gap_ns();
-                let (Some(a), Some(b)) = (self.truth.at(r.anchor.stamp_ns, gap), self.truth.at(q.anchor.stamp_ns, gap))
-                else {
+                let (Some(a), Some(b)) = (
+                    self.truth.at(r.anchor.stamp_ns, gap),
+                    self.truth.at(q.anchor.stamp_ns, gap),
+                ) else {
                     return Ok(None);
                 };
                 (a.relative(&b).0, 1.0)
             }
         };
         let sigma = self.params.sigma(learned_sigma);
-        Ok(Some(registration(r, q, shift_m, score, sigma, self.params.method.name())))
+        Ok(Some(registration(
+            r,
+            q,
+            shift_m,
+            score,
+            sigma,
+            self.params.method.name(),
+        )))
     }
 }
 
@@ -489,8 +501,9 @@ impl Stage for RegisterStage {
         if params.association == Association::Estimate && ports.input("estimate").is_none() {
             return Err(StageError::Params(ParamError {
                 path: vec!["association".into()],
-                message: "association `estimate` needs the `estimate` input (the estimator's state, as a feedback input)"
-                    .into(),
+                message:
+                    "association `estimate` needs the `estimate` input (the estimator's state, as a feedback input)"
+                        .into(),
             }));
         }
         let model = match params.method {
@@ -560,7 +573,10 @@ impl Stage for RegisterStage {
             }
             "estimate" => {
                 let m: StateEstimate = input.decode()?;
-                if let Err(e) = self.estimate.insert(m.header.stamp.to_ns(), planar_of(&m.world_from_body.pose)) {
+                if let Err(e) = self
+                    .estimate
+                    .insert(m.header.stamp.to_ns(), planar_of(&m.world_from_body.pose))
+                {
                     self.drops.record(Self::NAME, &input, &e.to_string());
                 }
                 // Registrations go out on primary inputs only: a feedback message's stamp is
@@ -635,8 +651,16 @@ mod tests {
             id,
             anchor: Anchor {
                 stamp_ns,
-                odom: Planar { x_m: 0.0, y_m: 0.0, yaw_rad: 0.0 },
-                odom_start: Planar { x_m: 0.0, y_m: 0.0, yaw_rad: 0.0 },
+                odom: Planar {
+                    x_m: 0.0,
+                    y_m: 0.0,
+                    yaw_rad: 0.0,
+                },
+                odom_start: Planar {
+                    x_m: 0.0,
+                    y_m: 0.0,
+                    yaw_rad: 0.0,
+                },
                 start_stamp_ns: stamp_ns,
                 backward: false,
             },
