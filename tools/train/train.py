@@ -14,13 +14,14 @@ scenario, and writes
 * stages/register/models/ground_encoding.head.json (linear) and ...nonlinear.json,
 * stages/register/tests/fixtures/learned/ (parity fixtures: manifest.json and *.f32).
 
-Retrain (from the repository root, about 10 minutes on 2 CPU cores, most of it decoding)::
+Retrain (from the repository root; about 10 minutes on 2 CPU cores with the cache, another
+10 the first time to simulate and decode; the defaults are the committed model's settings)::
 
     python3 -m venv .venv-train && .venv-train/bin/pip install -r tools/train/requirements.txt
     .venv-train/bin/python tools/train/train.py --cache-dir /tmp/train
 
-``--data-only`` stops after simulating, building and caching the submaps; ``--no-export``
-trains and validates without writing the artefacts.
+``--data-only`` stops after simulating, building, decoding and caching the submaps (numpy and
+mcap only, no torch); ``--no-export`` trains and validates without writing the artefacts.
 """
 
 import argparse
@@ -442,7 +443,8 @@ def parse_args():
     p.add_argument("--pairs-per-submap", type=int, default=2)
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--data-only", action="store_true", help="simulate, build and cache the submaps, stop")
+    p.add_argument("--data-only", action="store_true",
+                   help="simulate, build, decode and cache the submaps, then stop (no torch needed)")
     p.add_argument("--no-export", action="store_true", help="train and validate, write nothing")
     p.add_argument("--models-dir", default=MODELS_DIR)
     p.add_argument("--fixtures-dir", default=FIXTURES_DIR)
@@ -473,9 +475,7 @@ def main():
         sys.exit("only the simulator's training scenarios (training_*) may be used")
     if args.data_only:
         for s in scenarios:
-            for run in gprdata.RUNS:
-                rec = gprdata.simulate(args.binary, args.cache_dir, s, run)
-                gprdata.build_submaps(args.binary, rec, args.spacing_m)
+            load_scenario(args, s)
         return
 
     import torch
