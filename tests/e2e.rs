@@ -1448,3 +1448,103 @@ fn holding_the_dzt_counter_samples_lets_zero_time_find_the_first_negative_peak()
         assert!(t[1] >= t[0], "{} {}", t[0], t[1]);
     }
 }
+
+/// `gprflow eval RUN --truth TRUTH --format json`.
+fn eval_json(run: &Path, truth: &str) -> serde_json::Value {
+    let o = gprflow(&[
+        "eval",
+        run.to_str().expect("utf8"),
+        "--truth",
+        truth,
+        "--format",
+        "json",
+    ]);
+    assert!(o.status.success(), "eval: {}", stderr(&o));
+    serde_json::from_slice(&o.stdout).expect("eval json")
+}
+
+const BASEMENT: &str = "recordings/sim/basement-forward_backward.mcap";
+
+#[test]
+fn localisation_with_engineered_registration_beats_odometry_on_the_basement_run() {
+    use gprflow::msg::Registration;
+    let dir = tempfile::tempdir().expect("tempdir");
+    // the whole pipeline, with the default 16-frame buffers: the estimate -> register
+    // feedback ran into a wait cycle at 45 s before feedback inputs drained their inboxes
+    let (p, o) = launch_recorded(dir.path(), "graphs/localize.yaml", &[]);
+    let regs: Vec<Registration> = decode_all(&p["/register/registration"]);
+    assert!(regs.len() >= 20, "{} registrations: {}", regs.len(), stderr(&o));
+    for r in &regs {
+        assert_eq!(r.method, "engineered");
+        // loop candidates, not sequential submaps: at least 15 s apart
+        assert!((r.query_stamp.to_ns() - r.reference_stamp.to_ns()).abs() >= 15_000_000_000);
+        assert!((r.along_track_variance_m2 - 0.05f64.powi(2)).abs() < 1e-12);
+    }
+    let run = eval_json(&dir.path().join("run.mcap"), BASEMENT);
+    let reg_rmse = run["registration"]["along_track"]["rmse"]
+        .as_f64()
+        .expect("registration rmse");
+    assert!(reg_rmse < 0.03, "registration along-track RMSE {reg_rmse} m");
+    // the same recording without registration
+    let odo_dir = tempfile::tempdir().expect("tempdir");
+    launch_recorded(
+        odo_dir.path(),
+        "graphs/odometry.yaml",
+        &[format!("recording={BASEMENT}")],
+    );
+    let odo = eval_json(&odo_dir.path().join("run.mcap"), BASEMENT);
+    let (ate, ate_odo) = (
+        run["ate"]["rmse"].as_f64().expect("ate"),
+        odo["ate"]["rmse"].as_f64().expect("odometry ate"),
+    );
+    assert!(
+        ate < 0.8 * ate_odo,
+        "ATE {ate} m with registration, {ate_odo} m odometry only"
+    );
+}
+
+#[test]
+fn localisation_with_the_learned_model_and_the_oracle() {
+    use gprflow::msg::Registration;
+    for method in ["learned", "oracle"] {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (p, o) = launch_recorded(dir.path(), "graphs/localize.yaml", &[format!("method={method}")]);
+        let regs: Vec<Registration> = decode_all(&p["/register/registration"]);
+        assert!(
+            regs.len() >= 20,
+            "{method}: {} registrations: {}",
+            regs.len(),
+            stderr(&o)
+        );
+        assert!(regs.iter().all(|r| r.method == method));
+        let run = eval_json(&dir.path().join("run.mcap"), BASEMENT);
+        let reg_rmse = run["registration"]["along_track"]["rmse"]
+            .as_f64()
+            .expect("registration rmse");
+        // the oracle is the truth (to the interpolation); the model within a few cm
+        let limit = if method == "oracle" { 1e-3 } else { 0.03 };
+        assert!(reg_rmse < limit, "{method}: registration along-track RMSE {reg_rmse} m");
+    }
+}
+
+#[test]
+fn register_refuses_an_oracle_without_truth_and_a_missing_model() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let graph = dir.path().join("g.yaml");
+    std::fs::write(
+        &graph,
+        "name: bad\nnodes:\n  ingest: { stage: ingest, params: { source: recordings/sim/basement-forward_backward.mcap } }\n  submap: { stage: submap, inputs: { trace: ingest/gpr, wheel: ingest/wheel } }\n  register: { stage: register, inputs: { submap: submap/submap }, params: { method: oracle, association: truth } }\n",
+    )
+    .expect("write");
+    let o = gprflow(&["launch", graph.to_str().expect("utf8")]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("`truth` input"), "{}", stderr(&o));
+    std::fs::write(
+        &graph,
+        "name: bad\nnodes:\n  ingest: { stage: ingest, params: { source: recordings/sim/basement-forward_backward.mcap } }\n  submap: { stage: submap, inputs: { trace: ingest/gpr, wheel: ingest/wheel } }\n  register: { stage: register, inputs: { submap: submap/submap, truth: ingest/truth }, params: { method: learned, association: truth, model: /nonexistent/enc.onnx } }\n",
+    )
+    .expect("write");
+    let o = gprflow(&["launch", graph.to_str().expect("utf8")]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("/nonexistent/enc.onnx"), "{}", stderr(&o));
+}
