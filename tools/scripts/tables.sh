@@ -11,6 +11,7 @@
 #
 #   tools/scripts/tables.sh            # about 15 minutes on 2 cores
 #   tools/scripts/tables.sh --no-readme  # print only
+#   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 write_readme=1
@@ -33,9 +34,12 @@ for w in "${worlds[@]}"; do
     read -r name scenario run <<< "$w"
     rec="$out/$name-$run.mcap"
     [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" > /dev/null
-    $g launch graphs/odometry.yaml --set recording="$rec" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
-    $g eval "$out/$name-odometry.mcap" --truth "$rec" --format json > "$out/$name-odometry.json"
+    if [[ "${REUSE:-0}" != 1 || ! -s "$out/$name-odometry.json" ]]; then
+        $g launch graphs/odometry.yaml --set recording="$rec" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
+        $g eval "$out/$name-odometry.mcap" --truth "$rec" --format json > "$out/$name-odometry.json"
+    fi
     for m in "${models[@]}"; do
+        [[ "${REUSE:-0}" == 1 && -s "$out/$name-$m.json" ]] && continue
         method=$m
         extra=()
         if [[ $m == nonlinear ]]; then
