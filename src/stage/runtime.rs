@@ -411,33 +411,24 @@ impl InputState {
     /// Reads until a data frame is pending or nothing more is queued (a feedback input:
     /// everything queued).
     fn fill(&mut self) -> Result<(), BusError> {
-        if self.is_feedback() {
-            while !self.inbox.ended() {
-                match self.inbox.try_next()? {
-                    Some(Delivery::Data(frame)) => {
-                        self.watermark = self.watermark.max(self.effective(frame.header.stamp_ns));
-                        self.backlog.push_back(frame.detach());
-                    }
-                    Some(Delivery::Watermark(w)) => self.watermark = self.watermark.max(self.effective(w)),
-                    Some(Delivery::EndOfStream) => self.watermark = i64::MAX,
-                    None => break,
-                }
-            }
-            if self.head.is_none() {
-                self.head = self.backlog.pop_front();
-            }
-            return Ok(());
-        }
-        while self.head.is_none() && !self.inbox.ended() {
+        let feedback = self.is_feedback();
+        while (feedback || self.head.is_none()) && !self.inbox.ended() {
             match self.inbox.try_next()? {
                 Some(Delivery::Data(frame)) => {
                     self.watermark = self.watermark.max(self.effective(frame.header.stamp_ns));
-                    self.head = Some(frame);
+                    if feedback {
+                        self.backlog.push_back(frame.detach());
+                    } else {
+                        self.head = Some(frame);
+                    }
                 }
                 Some(Delivery::Watermark(w)) => self.watermark = self.watermark.max(self.effective(w)),
                 Some(Delivery::EndOfStream) => self.watermark = i64::MAX,
                 None => break,
             }
+        }
+        if self.head.is_none() {
+            self.head = self.backlog.pop_front();
         }
         Ok(())
     }
