@@ -11,7 +11,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::{Error, Result};
+use crate::{Error, Result, positive};
 
 /// A planar pose: position (m) and heading (rad) in some frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -189,16 +189,6 @@ impl CandidateGates {
     /// # Errors
     /// A gate that is not a positive finite number (`per_query` at least 1).
     pub fn check(&self) -> Result<()> {
-        let positive = |key: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(Error::Param {
-                    key,
-                    message: format!("must be a positive number, got {v}"),
-                })
-            }
-        };
         positive("candidates.max_along_m", self.max_along_m)?;
         positive("candidates.max_cross_m", self.max_cross_m)?;
         positive("candidates.max_heading_deg", self.max_heading_deg)?;

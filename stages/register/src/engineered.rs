@@ -136,18 +136,7 @@ pub fn register(
             reference.rows, reference.cols, reference.resolution_m, query.rows, query.cols, query.resolution_m
         )));
     }
-    if !(params.max_shift_m.is_finite() && params.max_shift_m >= 0.0) {
-        return Err(Error::Param {
-            key: "max_shift_m",
-            message: format!("must be finite and >= 0, got {}", params.max_shift_m),
-        });
-    }
-    if !(params.min_overlap > 0.0 && params.min_overlap <= 1.0) {
-        return Err(Error::Param {
-            key: "min_overlap",
-            message: format!("must be in (0, 1], got {}", params.min_overlap),
-        });
-    }
+    crate::check_shift_search(params.max_shift_m, params.min_overlap)?;
     let cols = reference.cols as i64;
     let min_width = ((params.min_overlap * cols as f64).ceil() as i64).max(1);
     let max_shift = ((params.max_shift_m / reference.resolution_m).round() as i64).min(cols - min_width);

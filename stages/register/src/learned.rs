@@ -349,19 +349,7 @@ impl CorrelationParams {
                 message: format!("must be finite and > 0, got {}", self.column_m),
             });
         }
-        if !(self.max_shift_m.is_finite() && self.max_shift_m >= 0.0) {
-            return Err(Error::Param {
-                key: "max_shift_m",
-                message: format!("must be finite and >= 0, got {}", self.max_shift_m),
-            });
-        }
-        if !(self.min_overlap > 0.0 && self.min_overlap <= 1.0) {
-            return Err(Error::Param {
-                key: "min_overlap",
-                message: format!("must be in (0, 1], got {}", self.min_overlap),
-            });
-        }
-        Ok(())
+        crate::check_shift_search(self.max_shift_m, self.min_overlap)
     }
 
     /// The largest shift tried, in columns, for `cols` feature columns: `floor(max_shift_m /

@@ -82,3 +82,32 @@ pub enum Error {
 
 /// Result of this crate.
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// `Ok` when parameter `key` is a positive finite number.
+pub(crate) fn positive(key: &'static str, v: f64) -> Result<()> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::Param {
+            key,
+            message: format!("must be a positive number, got {v}"),
+        })
+    }
+}
+
+/// `Ok` when a shift search is valid: `max_shift_m` finite and >= 0, `min_overlap` in (0, 1].
+pub(crate) fn check_shift_search(max_shift_m: f64, min_overlap: f64) -> Result<()> {
+    if !(max_shift_m.is_finite() && max_shift_m >= 0.0) {
+        return Err(Error::Param {
+            key: "max_shift_m",
+            message: format!("must be finite and >= 0, got {max_shift_m}"),
+        });
+    }
+    if !(min_overlap > 0.0 && min_overlap <= 1.0) {
+        return Err(Error::Param {
+            key: "min_overlap",
+            message: format!("must be in (0, 1], got {min_overlap}"),
+        });
+    }
+    Ok(())
+}

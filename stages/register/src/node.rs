@@ -26,7 +26,7 @@ use gprflow::stage::{
 use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
 use crate::learned::{Features, Head, Model};
-use crate::{Error, Result};
+use crate::{Error, Result, positive};
 
 /// How a candidate pair is registered.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
@@ -123,16 +123,6 @@ impl Default for RegisterParams {
 impl RegisterParams {
     fn check(&self) -> Result<()> {
         self.candidates.check()?;
-        let positive = |key: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(Error::Param {
-                    key,
-                    message: format!("must be a positive number, got {v}"),
-                })
-            }
-        };
         positive("reference_spacing_m", self.reference_spacing_m)?;
         positive("query_spacing_m", self.query_spacing_m)?;
         positive("max_track_gap_s", self.max_track_gap_s)?;
