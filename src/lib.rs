@@ -1,5 +1,6 @@
 //! gprflow runtime: messages, bus, stage SDK, graph files, launcher and MCAP I/O.
 
+pub mod bridge;
 pub mod bus;
 pub mod diff;
 pub mod eval;

@@ -1,5 +1,5 @@
-//! One conformance suite, run against every [`Transport`]: iceoryx2 shared memory and the
-//! in-process transport. Each case runs a publisher and a subscriber on two threads, each
+//! One conformance suite, run against every [`Transport`]: iceoryx2 shared memory, zenoh
+//! (two sessions over TCP on the loopback interface) and the in-process transport. Each case runs a publisher and a subscriber on two threads, each
 //! with its own transport handle, as two processes would.
 
 // Tests spawn short-lived helper threads; names would add nothing.
@@ -12,6 +12,8 @@ use std::time::{Duration, Instant};
 
 use gprflow::bus::inproc::InProcess;
 use gprflow::bus::iox::IoxTransport;
+use gprflow::bus::zenoh::ZenohTransport;
+use gprflow::graph::ZenohDecl;
 use gprflow::bus::{self, BusError, Delivery, FrameHeader, Inbox, Outbox, TopicConfig, Transport};
 use gprflow::msg::{self, Header, Message, Trace};
 
@@ -31,6 +33,47 @@ struct Iox {
 impl Sut for Iox {
     fn transport(&self, node: &str) -> Box<dyn Transport> {
         Box::new(IoxTransport::new(node, &self.prefix, self.stop.clone()).expect("iceoryx2 node"))
+    }
+}
+
+/// Two zenoh sessions: the subscriber's listens on a free loopback port, the publisher's
+/// connects to it.
+#[derive(Clone)]
+struct Zenoh {
+    port: u16,
+    prefix: String,
+    stop: Arc<AtomicBool>,
+}
+
+impl Zenoh {
+    fn new() -> Self {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        Self {
+            port,
+            prefix: format!("gprflow/conformance/{}", unique_prefix().trim_end_matches('_')),
+            stop: Arc::new(AtomicBool::new(false)),
+        }
+    }
+}
+
+impl Sut for Zenoh {
+    fn transport(&self, node: &str) -> Box<dyn Transport> {
+        let endpoint = vec![format!("tcp/127.0.0.1:{}", self.port)];
+        let decl = if node == "sub" {
+            ZenohDecl {
+                listen: endpoint,
+                ..ZenohDecl::default()
+            }
+        } else {
+            ZenohDecl {
+                connect: endpoint,
+                ..ZenohDecl::default()
+            }
+        };
+        Box::new(ZenohTransport::open(&decl, &self.prefix, self.stop.clone()).expect("zenoh session"))
     }
 }
 
@@ -309,4 +352,5 @@ conformance!(
         stop: Arc::new(AtomicBool::new(false))
     }
 );
+conformance!(zenoh, Zenoh::new());
 conformance!(in_process, InProc(InProcess::new(Arc::new(AtomicBool::new(false)))));

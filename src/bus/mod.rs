@@ -15,6 +15,7 @@
 
 pub mod inproc;
 pub mod iox;
+pub mod zenoh;
 
 use std::mem::MaybeUninit;
 use std::time::Duration;
@@ -177,6 +178,18 @@ pub enum BusError {
         stamp_ns: i64,
         /// The topic's watermark.
         watermark_ns: i64,
+    },
+    /// Nothing was heard from the other end of a topic across machines for the link timeout.
+    #[error("topic `{topic}`: no word from the other host for {waited:?} (link down); data frames seq {first}..{last} not delivered")]
+    LinkDown {
+        /// Topic concerned.
+        topic: String,
+        /// How long it was silent.
+        waited: Duration,
+        /// First data seq not delivered.
+        first: u64,
+        /// One past the last data seq not delivered (equal to `first`: none known).
+        last: u64,
     },
     /// Shutdown was requested while waiting.
     #[error("shutdown requested")]

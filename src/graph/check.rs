@@ -88,9 +88,21 @@ pub(crate) fn check(
     }
 
     let hosts = match decl.hosts {
-        Some(hosts) => check_hosts(hosts.0, &nodes, source)?,
+        Some(hosts) => check_hosts(hosts.0, &nodes, &decl.name, source)?,
         None => Vec::new(),
     };
+    if let Some(host) = decl.record.as_ref().and_then(|r| r.host.as_ref())
+        && !hosts.iter().any(|h| &h.name == host)
+    {
+        return Err(GraphError::BadHost {
+            at: source.at_value(&key_path(&["record", "host"])),
+            host: host.clone(),
+            message: format!(
+                "`record.host` names no host (hosts are: {})",
+                list(hosts.iter().map(|h| h.name.as_str()))
+            ),
+        });
+    }
     check_cycles(&nodes, source)?;
 
     Ok(Graph {
@@ -384,9 +396,24 @@ fn feedback_delay_ns(seconds: f64) -> Option<i64> {
 }
 
 /// Checks the placement of nodes on hosts.
-fn check_hosts(decls: Vec<(String, HostDecl)>, nodes: &[Node], source: &Source<'_>) -> Result<Vec<Host>, GraphError> {
+fn check_hosts(
+    decls: Vec<(String, HostDecl)>,
+    nodes: &[Node],
+    graph_name: &str,
+    source: &Source<'_>,
+) -> Result<Vec<Host>, GraphError> {
     let mut placed: HashMap<&str, &str> = HashMap::new();
     for (host, decl) in &decls {
+        // everything but the certificate files, which the launcher of that host checks
+        let checked =
+            crate::bus::zenoh::check_settings(&decl.zenoh).and(crate::bus::zenoh::key_prefix(graph_name, host));
+        if let Err(message) = checked {
+            return Err(GraphError::BadHost {
+                at: source.at_value(&key_path(&["hosts", host])),
+                host: host.clone(),
+                message,
+            });
+        }
         for (index, node) in decl.nodes.iter().enumerate() {
             let at = || source.at_value(&key_path(&["hosts", host, "nodes", &index.to_string()]));
             if !nodes.iter().any(|n| &n.name == node) {

@@ -198,6 +198,16 @@ pub enum GraphError {
         /// The nodes there are.
         known: String,
     },
+    /// A host's zenoh settings cannot work (bad endpoint, mode, certificates, access list).
+    #[error("{at}: host `{host}`: {message}")]
+    BadHost {
+        /// Where (`hosts.NAME.zenoh`).
+        at: Box<Location>,
+        /// The host.
+        host: String,
+        /// What is wrong.
+        message: String,
+    },
     /// An input reference that is not `node/output`.
     #[error("{at}: `{reference}` is not an output reference of the form `node/output`")]
     BadReference {
@@ -282,6 +292,8 @@ pub enum GraphErrorKind {
     NodeOnNoHost,
     /// A host lists a node that does not exist.
     UnknownHostNode,
+    /// A host's zenoh settings (endpoints, mode, TLS, access list) or `record.host`.
+    BadHost,
     /// A malformed `node/output` reference.
     BadReference,
     /// An undeclared or malformed variable, in the file or on the command line.
@@ -294,7 +306,7 @@ pub enum GraphErrorKind {
 
 impl GraphErrorKind {
     /// Every kind, in declaration order.
-    pub const ALL: [GraphErrorKind; 16] = [
+    pub const ALL: [GraphErrorKind; 17] = [
         Self::Io,
         Self::Syntax,
         Self::Structure,
@@ -307,6 +319,7 @@ impl GraphErrorKind {
         Self::DuplicateName,
         Self::NodeOnNoHost,
         Self::UnknownHostNode,
+        Self::BadHost,
         Self::BadReference,
         Self::UnknownVariable,
         Self::Cycle,
@@ -328,6 +341,7 @@ impl GraphErrorKind {
             Self::DuplicateName => "DuplicateName",
             Self::NodeOnNoHost => "NodeOnNoHost",
             Self::UnknownHostNode => "UnknownHostNode",
+            Self::BadHost => "BadHost",
             Self::BadReference => "BadReference",
             Self::UnknownVariable => "UnknownVariable",
             Self::Cycle => "Cycle",
@@ -376,6 +390,7 @@ impl GraphError {
             Self::TypeMismatch { .. } => K::TypeMismatch,
             Self::NodeOnNoHost { .. } => K::NodeOnNoHost,
             Self::UnknownHostNode { .. } => K::UnknownHostNode,
+            Self::BadHost { .. } => K::BadHost,
             Self::BadReference { .. } => K::BadReference,
             Self::UnknownVariable { .. } | Self::UnclosedVariable { .. } | Self::UnknownOverride { .. } => {
                 K::UnknownVariable
@@ -402,6 +417,7 @@ impl GraphError {
             | Self::TypeMismatch { at, .. }
             | Self::NodeOnNoHost { at, .. }
             | Self::UnknownHostNode { at, .. }
+            | Self::BadHost { at, .. }
             | Self::BadReference { at, .. }
             | Self::UnknownVariable { at, .. }
             | Self::UnclosedVariable { at, .. }

@@ -75,7 +75,7 @@ impl Input {
 }
 
 /// One machine and the nodes it runs.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Host {
     /// Host name as written in the file (`--host NAME` selects it).
     pub name: String,

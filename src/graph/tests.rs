@@ -265,7 +265,8 @@ fn toy_graph_reads_in_full() {
     assert_eq!(
         graph.record,
         Some(RecordDecl {
-            topics: vec!["*".to_owned()]
+            topics: vec!["*".to_owned()],
+            host: None,
         })
     );
 }
@@ -332,8 +333,7 @@ fn hosts_place_nodes() {
                 nodes: vec!["gen".to_owned(), "gain".to_owned()],
                 zenoh: ZenohDecl {
                     listen: vec!["tcp/127.0.0.1:7447".to_owned()],
-                    connect: vec![],
-                    mode: None,
+                    ..ZenohDecl::default()
                 },
             },
             Host {
@@ -342,7 +342,7 @@ fn hosts_place_nodes() {
                 zenoh: ZenohDecl {
                     listen: vec![],
                     connect: vec!["tcp/127.0.0.1:7447".to_owned()],
-                    mode: None,
+                    ..ZenohDecl::default()
                 },
             },
         ]
