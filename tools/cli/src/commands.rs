@@ -22,6 +22,8 @@ pub struct LaunchArgs {
     pub record: Option<PathBuf>,
     /// Only this host's nodes.
     pub host: Option<String>,
+    /// Seconds to wait for the other hosts.
+    pub remote_timeout_s: f64,
     /// Topic buffer depth.
     pub buffer: usize,
     /// Plan only.
@@ -74,6 +76,10 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     let mut opts = LaunchOptions::new(exe);
     opts.record.clone_from(&args.record);
     opts.host.clone_from(&args.host);
+    if !(args.remote_timeout_s.is_finite() && args.remote_timeout_s > 0.0) {
+        bail!("--remote-timeout-s {}: must be a positive number of seconds", args.remote_timeout_s);
+    }
+    opts.remote_timeout = std::time::Duration::from_secs_f64(args.remote_timeout_s.min(1e6));
     opts.buffer = args.buffer.max(1);
     opts.log_filter = Some(args.log.clone());
     let plan = launch::plan(&graph, &opts)?;

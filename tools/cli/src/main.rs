@@ -49,6 +49,9 @@ enum Command {
     /// Run a graph: one process per node, optionally recorded.
     ///
     /// Example: gprflow launch graphs/toy.yaml --set count=500 --record out.mcap
+    ///
+    /// Across machines, each runs its share: gprflow launch graphs/toy-hosts.yaml --host robot
+    /// (and --host base --record out.mcap on the host that records)
     Launch {
         /// Graph file (YAML).
         graph: PathBuf,
@@ -58,9 +61,13 @@ enum Command {
         /// Record the graph's topics to this MCAP file.
         #[arg(long)]
         record: Option<PathBuf>,
-        /// Run only this host's share of the graph.
+        /// Run only this host's share of the graph; topics to and from other hosts travel
+        /// over zenoh as the graph's `hosts:` section says.
         #[arg(long)]
         host: Option<String>,
+        /// With --host: seconds to wait for the other hosts to come up.
+        #[arg(long, default_value_t = 120.0)]
+        remote_timeout_s: f64,
         /// Frames each topic buffers per subscriber.
         #[arg(long, default_value_t = 16)]
         buffer: usize,
@@ -296,6 +303,7 @@ fn main() -> ExitCode {
             set,
             record,
             host,
+            remote_timeout_s,
             buffer,
             dry_run,
         } => commands::launch(&commands::LaunchArgs {
@@ -303,6 +311,7 @@ fn main() -> ExitCode {
             set,
             record,
             host,
+            remote_timeout_s,
             buffer,
             dry_run,
             log: cli.log.clone(),
