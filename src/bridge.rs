@@ -227,7 +227,7 @@ fn relay_out(
         BusError::HandshakeTimeout { .. } => BusError::Transport {
             topic: route.topic.clone(),
             what: format!(
-                "host `{}` did not subscribe within {:?}: is `gprflow launch --host {}` running and reachable?",
+                "host `{}` did not subscribe within {:?}: is `gprflow launch --host {}` running and reachable, and allowed (`tls`, `allow`)?",
                 route.peer,
                 started.elapsed(),
                 route.peer
@@ -284,7 +284,7 @@ fn relay_in(
         BusError::HandshakeTimeout { waited, .. } => BusError::Transport {
             topic: route.topic.clone(),
             what: format!(
-                "host `{}` did not publish within {waited:?}: is `gprflow launch --host {}` running and reachable?",
+                "host `{}` did not publish within {waited:?}: is `gprflow launch --host {}` running and reachable, and allowed (`tls`, `allow`)?",
                 route.peer, route.peer
             ),
         },
