@@ -1,0 +1,356 @@
+//! Graphs split over hosts: each host is a network namespace of its own (its own network
+//! stack, joined to the other by a veth pair), running `gprflow launch --host NAME`. The
+//! tests set the namespaces up and tear them down themselves; they need root and `ip`.
+//! Addresses are 10.77.K.1 and 10.77.K.2, only inside those namespaces.
+
+// Tests spawn helper threads and processes; names would add nothing.
+#![allow(clippy::disallowed_methods)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const GPRFLOW: &str = env!("CARGO_BIN_EXE_gprflow");
+const BASEMENT: &str = "recordings/sim/basement-forward_backward.mcap";
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn ip(args: &[&str]) {
+    let o = Command::new("ip").args(args).output().expect("`ip` runs (iproute2)");
+    assert!(
+        o.status.success(),
+        "ip {}: {} (these tests need root)",
+        args.join(" "),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// Two network namespaces, `robot` at 10.77.K.1 and `base` at 10.77.K.2, joined by a veth
+/// pair; removed on drop.
+struct Hosts {
+    robot: String,
+    base: String,
+    robot_if: String,
+    net: u8,
+}
+
+impl Hosts {
+    fn new(net: u8) -> Self {
+        let id = std::process::id() % 100_000;
+        let hosts = Self {
+            robot: format!("gfz{id}n{net}r"),
+            base: format!("gfz{id}n{net}b"),
+            robot_if: format!("gz{id}n{net}r"),
+            net,
+        };
+        let base_if = format!("gz{id}n{net}b");
+        // a namespace left by an earlier run that was killed
+        for ns in [&hosts.robot, &hosts.base] {
+            let _ = Command::new("ip").args(["netns", "del", ns]).stderr(Stdio::null()).status();
+        }
+        ip(&["netns", "add", &hosts.robot]);
+        ip(&["netns", "add", &hosts.base]);
+        ip(&["link", "add", &hosts.robot_if, "type", "veth", "peer", "name", &base_if]);
+        for (ns, dev, addr) in [
+            (&hosts.robot, &hosts.robot_if, hosts.robot_addr()),
+            (&hosts.base, &base_if, hosts.base_addr()),
+        ] {
+            ip(&["link", "set", dev, "netns", ns]);
+            ip(&["-n", ns, "addr", "add", &format!("{addr}/30"), "dev", dev]);
+            ip(&["-n", ns, "link", "set", dev, "up"]);
+            ip(&["-n", ns, "link", "set", "lo", "up"]);
+        }
+        hosts
+    }
+
+    fn robot_addr(&self) -> String {
+        format!("10.77.{}.1", self.net)
+    }
+
+    fn base_addr(&self) -> String {
+        format!("10.77.{}.2", self.net)
+    }
+
+    /// Cuts (false) or restores (true) the link, from the robot's side.
+    fn link(&self, up: bool) {
+        ip(&["-n", &self.robot, "link", "set", &self.robot_if, if up { "up" } else { "down" }]);
+    }
+
+    /// Starts `gprflow ARGS` inside namespace `ns`.
+    fn spawn(&self, ns: &str, args: &[&str], log: &Path) -> Child {
+        let file = std::fs::File::create(log).expect("log file");
+        Command::new("ip")
+            .args(["netns", "exec", ns, GPRFLOW])
+            .args(args)
+            .current_dir(repo())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(file)
+            .spawn()
+            .expect("ip netns exec runs")
+    }
+}
+
+impl Drop for Hosts {
+    fn drop(&mut self) {
+        // deleting a namespace deletes its end of the veth pair, and so the pair
+        for ns in [&self.robot, &self.base] {
+            let _ = Command::new("ip").args(["netns", "del", ns]).status();
+        }
+    }
+}
+
+/// Waits for `child` up to `limit`; kills it past that.
+fn finish(mut child: Child, limit: Duration, log: &Path) -> (bool, String) {
+    let start = Instant::now();
+    let ok = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break status.success();
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            break false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    (ok, std::fs::read_to_string(log).unwrap_or_default())
+}
+
+fn gprflow(args: &[&str]) -> Output {
+    Command::new(GPRFLOW)
+        .current_dir(repo())
+        .args(args)
+        .output()
+        .expect("gprflow runs")
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+/// `graph`'s text with its `record:` line replaced and a `hosts:` section added.
+fn split_graph(graph: &str, record: &str, hosts: &str) -> String {
+    let text = std::fs::read_to_string(repo().join(graph)).expect("graph file");
+    let kept: Vec<&str> = text.lines().filter(|l| !l.starts_with("record:")).collect();
+    format!("{}\n{record}\n{hosts}", kept.join("\n"))
+}
+
+/// Runs `graph_file` on both hosts (robot without recording, base recording to `record`).
+fn run_split(hosts: &Hosts, graph_file: &Path, record: &Path, extra: &[&str], limit: Duration) -> [(bool, String); 2] {
+    let dir = record.parent().expect("dir");
+    let graph = graph_file.to_str().expect("utf8");
+    let mut robot_args = vec!["launch", graph, "--host", "robot"];
+    robot_args.extend(extra);
+    let mut base_args = vec!["launch", graph, "--host", "base", "--record", record.to_str().expect("utf8")];
+    base_args.extend(extra);
+    let robot = hosts.spawn(&hosts.robot, &robot_args, &dir.join("robot.log"));
+    let base = hosts.spawn(&hosts.base, &base_args, &dir.join("base.log"));
+    [
+        finish(robot, limit, &dir.join("robot.log")),
+        finish(base, limit, &dir.join("base.log")),
+    ]
+}
+
+fn assert_same(a: &Path, b: &Path) {
+    let o = gprflow(&["diff", a.to_str().expect("utf8"), b.to_str().expect("utf8")]);
+    assert!(o.status.success(), "the runs differ:\n{}", text(&o));
+}
+
+/// The localisation pipeline with the register -> estimate -> register feedback cycle cut
+/// across the two hosts records exactly what it records on one machine.
+#[test]
+fn localisation_split_over_two_hosts_records_what_one_host_records() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let single = dir.path().join("single.mcap");
+    let o = gprflow(&["launch", "graphs/localize.yaml", "--record", single.to_str().expect("utf8")]);
+    assert!(o.status.success(), "{}", text(&o));
+
+    let hosts = Hosts::new(1);
+    let graph = dir.path().join("localize-hosts.yaml");
+    let text = split_graph(
+        "graphs/localize.yaml",
+        r#"record: { topics: ["estimate/*", "register/*"], host: base }"#,
+        &format!(
+            "hosts:\n  robot: {{ nodes: [ingest, dsp, submap, filter, register], zenoh: {{ listen: [tcp/{r}:7447] }} }}\n  base: {{ nodes: [estimate], zenoh: {{ connect: [tcp/{r}:7447] }} }}\n",
+            r = hosts.robot_addr()
+        ),
+    );
+    std::fs::write(&graph, text).expect("graph");
+    let split = dir.path().join("split.mcap");
+    let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &graph, &split, &[], Duration::from_secs(240));
+    assert!(robot_ok && base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
+    // imu, wheel, truth and registrations go to base, the estimate comes back as feedback
+    for route in ["`ingest/imu` to host `base`", "`register/registration` to host `base`", "`estimate/state` from host `base`"] {
+        assert!(robot_log.contains(route), "robot relays {route}:\n{robot_log}");
+    }
+    assert_same(&single, &split);
+}
+
+/// The link goes down for 4 s in the middle of a paced replay (longer than the 1 s zenoh
+/// lease, so the session is closed and opened again): the run completes by itself and the
+/// recording equals the one-host run.
+#[test]
+fn a_link_cut_for_seconds_loses_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let hosts = Hosts::new(2);
+    let nodes = format!(
+        "name: cut\nnodes:\n  ingest: {{ stage: ingest, params: {{ source: {BASEMENT}, pace: recorded, speed: 5.0 }} }}\n  dsp: {{ stage: dsp, inputs: {{ trace: ingest/gpr }} }}\n"
+    );
+    let record = r#"record: { topics: ["*"], host: base }"#;
+    let hosts_text = format!(
+        "hosts:\n  robot: {{ nodes: [ingest], zenoh: {{ listen: [tcp/{r}:7447], lease_ms: 1000 }} }}\n  base: {{ nodes: [dsp], zenoh: {{ connect: [tcp/{r}:7447], lease_ms: 1000 }} }}\n",
+        r = hosts.robot_addr()
+    );
+    let single_graph = dir.path().join("single.yaml");
+    std::fs::write(&single_graph, format!("{nodes}record: {{ topics: [\"*\"] }}\n")).expect("graph");
+    let single = dir.path().join("single.mcap");
+    let o = gprflow(&["launch", single_graph.to_str().expect("utf8"), "--record", single.to_str().expect("utf8")]);
+    assert!(o.status.success(), "{}", text(&o));
+
+    let graph = dir.path().join("cut.yaml");
+    std::fs::write(&graph, format!("{nodes}{record}\n{hosts_text}")).expect("graph");
+    let split = dir.path().join("split.mcap");
+    let cutter = {
+        let (robot, robot_if) = (hosts.robot.clone(), hosts.robot_if.clone());
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs(4));
+            ip(&["-n", &robot, "link", "set", &robot_if, "down"]);
+            let cut = Instant::now();
+            std::thread::sleep(Duration::from_secs(4));
+            ip(&["-n", &robot, "link", "set", &robot_if, "up"]);
+            cut.elapsed()
+        })
+    };
+    let started = Instant::now();
+    let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &graph, &split, &[], Duration::from_secs(120));
+    let wall = started.elapsed();
+    let down = cutter.join().expect("cutter");
+    assert!(robot_ok && base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
+    // 60 s of recording at 5x: the run was still going when the link came back
+    assert!(wall > Duration::from_secs(8) + down, "run took {wall:?}, link down {down:?}");
+    assert_same(&single, &split);
+}
+
+/// A link that stays down fails the run with the topic and the frames not delivered.
+#[test]
+fn a_link_down_for_good_is_reported_with_topic_and_seqs() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let hosts = Hosts::new(3);
+    let graph = dir.path().join("down.yaml");
+    std::fs::write(
+        &graph,
+        format!(
+            "name: down\nnodes:\n  ingest: {{ stage: ingest, params: {{ source: {BASEMENT}, pace: recorded, speed: 5.0 }} }}\n  dsp: {{ stage: dsp, inputs: {{ trace: ingest/gpr }} }}\nrecord: {{ topics: [\"dsp/*\"], host: base }}\nhosts:\n  robot: {{ nodes: [ingest], zenoh: {{ listen: [tcp/{r}:7447], link_timeout_s: 3 }} }}\n  base: {{ nodes: [dsp], zenoh: {{ connect: [tcp/{r}:7447], link_timeout_s: 3 }} }}\n",
+            r = hosts.robot_addr()
+        ),
+    )
+    .expect("graph");
+    let split = dir.path().join("split.mcap");
+    let cutter = {
+        let (robot, robot_if) = (hosts.robot.clone(), hosts.robot_if.clone());
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs(3));
+            ip(&["-n", &robot, "link", "set", &robot_if, "down"]);
+        })
+    };
+    let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &graph, &split, &[], Duration::from_secs(60));
+    cutter.join().expect("cutter");
+    assert!(!robot_ok && !base_ok, "both sides fail:\nrobot:\n{robot_log}\nbase:\n{base_log}");
+    // the sending side names the topic and the seqs it could not deliver
+    let lost = robot_log
+        .lines()
+        .find(|l| l.contains("link down") && l.contains("ingest/gpr"))
+        .unwrap_or_else(|| panic!("robot reports the loss:\n{robot_log}"));
+    assert!(lost.contains("data frames seq"), "{lost}");
+    assert!(
+        base_log.contains("link down"),
+        "base reports the silent link:\n{base_log}"
+    );
+}
+
+/// Mutual TLS between the hosts, each allowing only the other's certificate name: the run
+/// works; a host whose certificate name is not allowed gets nothing and the run fails with
+/// the reason.
+#[test]
+fn tls_with_an_allow_list_admits_only_the_named_host() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let hosts = Hosts::new(4);
+    let certs = dir.path().join("certs");
+    let o = Command::new(repo().join("tools/scripts/make-certs.sh"))
+        .arg(&certs)
+        .arg(format!("robot={}", hosts.robot_addr()))
+        .arg(format!("base={}", hosts.base_addr()))
+        .arg(format!("intruder={}", hosts.base_addr()))
+        .output()
+        .expect("make-certs.sh runs");
+    assert!(o.status.success(), "{}", text(&o));
+    let c = certs.display();
+    let graph_for = |base_cert: &str| {
+        format!(
+            "name: tls\nnodes:\n  gen: {{ stage: toy_source, params: {{ count: 300 }} }}\n  gain: {{ stage: toy_gain, inputs: {{ trace: gen/trace }} }}\nrecord: {{ topics: [\"*\"], host: base }}\nhosts:\n  robot:\n    nodes: [gen]\n    zenoh: {{ listen: [tls/{r}:7447], tls: {{ root_ca: {c}/ca.pem, certificate: {c}/robot.pem, private_key: {c}/robot.key }}, allow: [base] }}\n  base:\n    nodes: [gain]\n    zenoh: {{ connect: [tls/{r}:7447], tls: {{ root_ca: {c}/ca.pem, certificate: {c}/{base_cert}.pem, private_key: {c}/{base_cert}.key }}, allow: [robot] }}\n",
+            r = hosts.robot_addr()
+        )
+    };
+    let good = dir.path().join("good.yaml");
+    std::fs::write(&good, graph_for("base")).expect("graph");
+    let rec = dir.path().join("good.mcap");
+    let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &good, &rec, &[], Duration::from_secs(60));
+    assert!(robot_ok && base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
+    let o = gprflow(&["inspect", rec.to_str().expect("utf8"), "--json"]);
+    assert!(text(&o).contains("gain/trace"), "{}", text(&o));
+
+    let bad = dir.path().join("bad.yaml");
+    std::fs::write(&bad, graph_for("intruder")).expect("graph");
+    let rec = dir.path().join("bad.mcap");
+    let [(robot_ok, robot_log), (base_ok, base_log)] =
+        run_split(&hosts, &bad, &rec, &["--remote-timeout-s", "4"], Duration::from_secs(60));
+    assert!(!robot_ok && !base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
+    assert!(
+        robot_log.contains("host `base` did not subscribe"),
+        "robot names the host that never came:\n{robot_log}"
+    );
+}
+
+/// Bad host sections are refused before anything starts, naming file and key.
+#[test]
+fn bad_host_sections_are_refused_with_file_and_key() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cases = [
+        ("zenoh: { listen: [udp/10.0.0.1:7447] }", "protocol `udp`"),
+        ("zenoh: { listen: [tcp/10.0.0.1] }", "expected ADDRESS:PORT"),
+        ("zenoh: { listen: [tls/10.0.0.1:7447] }", "needs the host's `tls:`"),
+        ("zenoh: { mode: star }", "zenoh mode `star`"),
+        ("zenoh: { allow: [base] }", "needs `tls`"),
+        ("zenoh: { link_timeout_s: 0 }", "link_timeout_s 0"),
+    ];
+    for (i, (zenoh, expected)) in cases.iter().enumerate() {
+        let graph = dir.path().join(format!("bad{i}.yaml"));
+        std::fs::write(
+            &graph,
+            format!("name: bad\nnodes:\n  gen: {{ stage: toy_source }}\nhosts:\n  robot: {{ nodes: [gen], {zenoh} }}\n"),
+        )
+        .expect("graph");
+        let o = gprflow(&["launch", graph.to_str().expect("utf8"), "--host", "robot"]);
+        let out = text(&o);
+        assert!(!o.status.success(), "{zenoh}: {out}");
+        assert!(out.contains(&format!("bad{i}.yaml:5")), "{zenoh}: names file and line: {out}");
+        assert!(out.contains(expected), "{zenoh}: {out}");
+    }
+    // certificates that are not there, and recording asked of the wrong host
+    let graph = dir.path().join("files.yaml");
+    std::fs::write(
+        &graph,
+        "name: files\nnodes:\n  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: gen/trace } }\nrecord: { topics: [\"*\"], host: base }\nhosts:\n  robot: { nodes: [gen], zenoh: { listen: [tls/127.0.0.1:7447], tls: { root_ca: nope/ca.pem, certificate: nope/r.pem, private_key: nope/r.key } } }\n  base: { nodes: [gain], zenoh: { connect: [tcp/127.0.0.1:7447] } }\n",
+    )
+    .expect("graph");
+    let g = graph.to_str().expect("utf8");
+    let o = gprflow(&["launch", g, "--host", "robot"]);
+    assert!(!o.status.success() && text(&o).contains("tls.root_ca"), "{}", text(&o));
+    let o = gprflow(&["launch", g, "--host", "robot", "--record", "x.mcap"]);
+    assert!(!o.status.success() && text(&o).contains("writes the recording, not `robot`"), "{}", text(&o));
+    let o = gprflow(&["launch", g, "--host", "base"]);
+    assert!(!o.status.success() && text(&o).contains("give it --record FILE"), "{}", text(&o));
+}
