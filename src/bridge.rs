@@ -107,6 +107,8 @@ pub struct RouteReport {
     pub frames: u64,
     /// Payload bytes relayed.
     pub bytes: u64,
+    /// `out` routes: frames the zenoh side had to send again.
+    pub resent: u64,
 }
 
 /// Runs the bridge node until every route has relayed end of stream (or one fails).
@@ -170,7 +172,13 @@ pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteRe
         };
         match result {
             Ok(report) => {
-                tracing::info!(route = report.route, frames = report.frames, bytes = report.bytes, "relayed");
+                tracing::info!(
+                    route = report.route,
+                    frames = report.frames,
+                    bytes = report.bytes,
+                    resent = report.resent,
+                    "relayed"
+                );
                 reports.push(report);
             }
             // the failing route is the one to report, not the ones it stopped
@@ -239,6 +247,7 @@ fn relay_out(
         route: route.describe(),
         frames: 0,
         bytes: 0,
+        resent: 0,
     };
     loop {
         let frame = next_frame(local.as_mut(), &stopped)?;
@@ -264,6 +273,7 @@ fn relay_out(
     drop(local);
     // everything must be taken on the other side before the only copy goes away
     out.drain(&stopped)?;
+    report.resent = out.resent();
     Ok(report)
 }
 
@@ -295,6 +305,7 @@ fn relay_in(
         route: route.describe(),
         frames: 0,
         bytes: 0,
+        resent: 0,
     };
     loop {
         let frame = next_frame(&mut remote_in, &stopped)?;

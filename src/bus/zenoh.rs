@@ -339,6 +339,8 @@ struct PubShared {
     /// Serialises puts so that frames leave in link order.
     put_lock: Mutex<::zenoh::pubsub::Publisher<'static>>,
     closed: AtomicBool,
+    /// Frames sent again (after a gap report or a stall).
+    resent: std::sync::atomic::AtomicU64,
 }
 
 impl PubShared {
@@ -400,6 +402,7 @@ impl PubShared {
                 Vec::new()
             }
         };
+        self.resent.fetch_add(resend.len() as u64, Ordering::Relaxed);
         for bytes in resend {
             self.put(bytes)?;
         }
@@ -449,6 +452,7 @@ impl ZenohPublisher {
             changed: Condvar::new(),
             put_lock: Mutex::new(publisher),
             closed: AtomicBool::new(false),
+            resent: std::sync::atomic::AtomicU64::new(0),
         });
         let on_ack = shared.clone();
         let acks = t
@@ -513,6 +517,12 @@ impl ZenohPublisher {
                 .0;
         }
         Ok(())
+    }
+
+    /// Frames sent more than once so far (the link lost them, or the other side was not
+    /// subscribed yet).
+    pub fn resent(&self) -> u64 {
+        self.shared.resent.load(Ordering::Relaxed)
     }
 
     /// The data seqs of the frames not yet received, as `first..last` (one past).
