@@ -364,3 +364,89 @@ fn bad_host_sections_are_refused_with_file_and_key() {
     let o = gprflow(&["launch", g, "--host", "base"]);
     assert!(!o.status.success() && text(&o).contains("give it --record FILE"), "{}", text(&o));
 }
+
+/// What each host's launcher plans (`--dry-run`): the producer's output counts the bridge
+/// as one subscriber per reading host, the reading host's bridge waits for its local
+/// readers plus the recorder, and the recorder runs only on the recording host.
+#[test]
+fn each_host_plans_its_share_with_a_bridge() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let graph = dir.path().join("plan.yaml");
+    std::fs::write(
+        &graph,
+        "name: plan\nnodes:\n  gen: { stage: toy_source }\n  gain: { stage: toy_gain, inputs: { trace: gen/trace } }\n  again: { stage: toy_gain, inputs: { trace: gain/trace } }\nrecord: { topics: [\"*\"], host: base }\nhosts:\n  robot: { nodes: [gen, again], zenoh: { listen: [tcp/127.0.0.1:7447] } }\n  base: { nodes: [gain], zenoh: { connect: [tcp/127.0.0.1:7447] } }\n",
+    )
+    .expect("graph");
+    let plan = |args: &[&str]| -> serde_json::Value {
+        let mut all = vec!["launch", graph.to_str().expect("utf8"), "--dry-run"];
+        all.extend(args);
+        let o = gprflow(&all);
+        assert!(o.status.success(), "{}", text(&o));
+        serde_json::from_slice(&o.stdout).expect("plan JSON")
+    };
+    let node = |plan: &serde_json::Value, name: &str| -> serde_json::Value {
+        plan.as_array()
+            .expect("nodes")
+            .iter()
+            .find(|n| n["node"] == name)
+            .unwrap_or_else(|| panic!("no node {name} in {plan:#}"))
+            .clone()
+    };
+    let names = |plan: &serde_json::Value| -> Vec<String> {
+        plan.as_array()
+            .expect("nodes")
+            .iter()
+            .map(|n| n["node"].as_str().expect("name").to_owned())
+            .collect()
+    };
+    let routes = |bridge: &serde_json::Value| -> Vec<(String, String, String, u64)> {
+        bridge["params"]["routes"]
+            .as_array()
+            .expect("routes")
+            .iter()
+            .map(|r| {
+                (
+                    r["topic"].as_str().expect("topic").to_owned(),
+                    r["direction"].as_str().expect("direction").to_owned(),
+                    r["peer"].as_str().expect("peer").to_owned(),
+                    r["subscribers"].as_u64().expect("subscribers"),
+                )
+            })
+            .collect()
+    };
+
+    let robot = plan(&["--host", "robot"]);
+    assert_eq!(names(&robot), ["gen", "again", "__bridge"]);
+    // gen/trace: read by gain on base (and recorded there): one bridge subscriber
+    assert_eq!(node(&robot, "gen")["outputs"][0]["subscribers"], 1);
+    assert_eq!(
+        routes(&node(&robot, "__bridge")),
+        [
+            ("gen/trace".to_owned(), "out".to_owned(), "base".to_owned(), 0),
+            ("gain/trace".to_owned(), "in".to_owned(), "base".to_owned(), 1),
+            ("again/trace".to_owned(), "out".to_owned(), "base".to_owned(), 0),
+        ]
+    );
+    let base = plan(&["--host", "base", "--record", "x.mcap"]);
+    assert_eq!(names(&base), ["gain", "__record", "__bridge"]);
+    // gain/trace: again on robot (bridge) and the recorder
+    assert_eq!(node(&base, "gain")["outputs"][0]["subscribers"], 2);
+    let recorder = node(&base, "__record");
+    let recorded: Vec<&str> = recorder["inputs"]
+        .as_array()
+        .expect("inputs")
+        .iter()
+        .map(|i| i["topic"].as_str().expect("topic"))
+        .collect();
+    assert_eq!(recorded, ["gain/trace", "gen/trace", "again/trace"]);
+    assert_eq!(
+        routes(&node(&base, "__bridge")),
+        [
+            ("gen/trace".to_owned(), "in".to_owned(), "robot".to_owned(), 2),
+            ("gain/trace".to_owned(), "out".to_owned(), "robot".to_owned(), 0),
+            ("again/trace".to_owned(), "in".to_owned(), "robot".to_owned(), 1),
+        ]
+    );
+    // all on one machine: no bridge
+    assert_eq!(names(&plan(&["--record", "x.mcap"])), ["gen", "gain", "again", "__record"]);
+}

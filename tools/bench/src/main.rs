@@ -1,16 +1,20 @@
 //! `gprflow-bench`: benchmark programs of the gprflow runtime.
 //!
-//! `gprflow-bench [ipc] [--quick] [--spin] [--iterations N] [--messages N] [--touch-stride B] [--json FILE]`
+//! `gprflow-bench [ipc] [--quick] [--spin] [--iterations N] [--messages N] [--touch-stride B] [--json FILE]
+//! [--zenoh-listen ENDPOINT [--zenoh-connect ENDPOINT] [--zenoh-partner-netns NS]]`
 //! measures one hop between two processes over the iceoryx2 transport of the bus
 //! (`gprflow::bus::iox::IoxTransport`) and over a Unix domain socket, next to a plain
-//! in-process `memcpy`, for 4 KiB and 1 MiB messages. The method is described in [`ipc`].
+//! in-process `memcpy`, for 4 KiB and 1 MiB messages; with `--zenoh-listen`, also over the
+//! zenoh transport (`gprflow::bus::zenoh::ZenohTransport`, TCP), optionally to a partner in
+//! another network namespace (`tools/peer/bench_zenoh.sh` sets two up). The method is
+//! described in [`ipc`].
 //!
-//! The program re-executes itself as its partner process (`gprflow-bench echo ...`, hidden):
-//! that role only answers the driver and is of no use on its own.
+//! The program re-executes itself as its partner processes (`gprflow-bench echo ...`,
+//! hidden): that role only answers the driver and is of no use on its own.
 
+mod bus_hop;
 mod echo;
 mod hop;
-mod iox_hop;
 mod ipc;
 mod memcpy;
 mod payload;
@@ -22,7 +26,7 @@ mod uds_hop;
 use std::num::NonZeroUsize;
 use std::path::PathBuf;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{ArgGroup, Args, Parser, Subcommand};
 
 /// Command line of `gprflow-bench`.
 #[derive(Debug, Parser)]
@@ -41,7 +45,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// One-hop latency and throughput: iceoryx2 vs Unix domain socket vs memcpy (default).
+    /// One-hop latency and throughput: iceoryx2 vs Unix domain socket vs memcpy, and zenoh
+    /// when asked (default).
     Ipc(IpcArgs),
     /// The partner process of `ipc` (started by it; not for direct use).
     #[command(hide = true)]
@@ -73,17 +78,32 @@ pub struct IpcArgs {
     /// Also write the results as JSON to this file.
     #[arg(long, value_name = "FILE")]
     pub json: Option<PathBuf>,
+    /// Also measure the zenoh transport: the driver's session listens on this endpoint of
+    /// its host (`tcp/10.77.50.1:7447`) and a second partner process connects to it.
+    #[arg(long, value_name = "ENDPOINT")]
+    pub zenoh_listen: Option<String>,
+    /// The endpoint the zenoh partner connects to (default: the `--zenoh-listen` one).
+    #[arg(long, value_name = "ENDPOINT", requires = "zenoh_listen")]
+    pub zenoh_connect: Option<String>,
+    /// Start the zenoh partner in this network namespace (`ip netns exec NS`, needs root);
+    /// by default it runs in the driver's.
+    #[arg(long, value_name = "NS", requires = "zenoh_listen")]
+    pub zenoh_partner_netns: Option<String>,
 }
 
-/// Options of the partner process.
+/// Options of a partner process: the links it serves.
 #[derive(Debug, Clone, Args)]
+#[command(group(ArgGroup::new("links").required(true).multiple(true).args(["prefix", "zenoh_connect"])))]
 pub struct EchoArgs {
-    /// iceoryx2 resource prefix of the run.
-    #[arg(long)]
-    pub prefix: String,
+    /// iceoryx2 resource prefix of the run (serves the iceoryx2 and socket phases).
+    #[arg(long, requires = "socket")]
+    pub prefix: Option<String>,
     /// Abstract Unix socket name to connect to.
-    #[arg(long)]
-    pub socket: String,
+    #[arg(long, requires = "prefix")]
+    pub socket: Option<String>,
+    /// zenoh endpoint of the driver to connect to (serves the zenoh phases).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub zenoh_connect: Option<String>,
 }
 
 fn main() -> anyhow::Result<()> {

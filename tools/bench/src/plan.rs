@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use gprflow::bus::TopicConfig;
+use gprflow::graph::ZenohDecl;
 use serde::{Deserialize, Serialize};
 
 use crate::IpcArgs;
@@ -59,6 +60,61 @@ pub enum Link {
     Iceoryx2,
     /// The Unix stream socket between the two processes.
     UnixSocket,
+    /// `gprflow::bus::zenoh::ZenohTransport`: a zenoh session of the driver that listens and
+    /// one of a second partner process that connects (see [`ZenohSetup`]).
+    Zenoh,
+}
+
+/// Key prefix of the benchmark's zenoh topics, the same in both processes.
+pub const ZENOH_KEY_PREFIX: &str = "gprflow/bench";
+
+/// The zenoh link of a run (`--zenoh-listen`): where the driver listens, where its zenoh
+/// partner connects, and the network namespace that partner runs in.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ZenohSetup {
+    /// The driver's listening endpoint (`tcp/10.77.50.1:7447`).
+    pub listen: String,
+    /// The endpoint the partner connects to.
+    pub connect: String,
+    /// The network namespace the partner is started in (`ip netns exec`); `None`: the
+    /// driver's own.
+    pub partner_netns: Option<String>,
+}
+
+impl ZenohSetup {
+    /// The zenoh link asked for by `args`, if any.
+    pub fn from_args(args: &IpcArgs) -> Option<Self> {
+        let listen = args.zenoh_listen.clone()?;
+        Some(Self {
+            connect: args.zenoh_connect.clone().unwrap_or_else(|| listen.clone()),
+            listen,
+            partner_netns: args.zenoh_partner_netns.clone(),
+        })
+    }
+
+    /// Row label: the endpoint's protocol and where the partner runs
+    /// (`zenoh tcp, 2 netns`).
+    pub fn label(&self) -> String {
+        let protocol = self.listen.split_once('/').map_or("?", |(protocol, _)| protocol);
+        let namespaces = if self.partner_netns.is_some() { 2 } else { 1 };
+        format!("zenoh {protocol}, {namespaces} netns")
+    }
+
+    /// The driver's session: listens, connects nowhere.
+    pub fn driver_decl(&self) -> ZenohDecl {
+        ZenohDecl {
+            listen: vec![self.listen.clone()],
+            ..ZenohDecl::default()
+        }
+    }
+}
+
+/// The partner's session: connects to `endpoint`, listens nowhere.
+pub fn zenoh_partner_decl(endpoint: &str) -> ZenohDecl {
+    ZenohDecl {
+        connect: vec![endpoint.to_owned()],
+        ..ZenohDecl::default()
+    }
 }
 
 /// One phase, sent by the driver to its partner as a JSON line on the partner's stdin.
@@ -251,5 +307,19 @@ mod tests {
         assert_eq!(phase.forward_topic(), phase.forward_topic());
         assert_eq!(phase.forward_topic().initial_payload_bytes, 1 << 20);
         assert_eq!(phase.backward_topic().name, "bench/p1/pong");
+    }
+
+    #[test]
+    fn zenoh_rows_say_where_the_partner_runs() {
+        let mut setup = ZenohSetup {
+            listen: "tcp/10.77.50.1:7447".to_owned(),
+            connect: "tcp/10.77.50.1:7447".to_owned(),
+            partner_netns: Some("ns2".to_owned()),
+        };
+        assert_eq!(setup.label(), "zenoh tcp, 2 netns");
+        setup.partner_netns = None;
+        assert_eq!(setup.label(), "zenoh tcp, 1 netns");
+        assert_eq!(setup.driver_decl().listen, [setup.listen.clone()]);
+        assert!(zenoh_partner_decl(&setup.connect).listen.is_empty());
     }
 }

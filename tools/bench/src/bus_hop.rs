@@ -1,5 +1,9 @@
-//! [`Endpoint`] over the bus's iceoryx2 transport: the sender fills loaned shared memory in
-//! place (`Publisher::send_with`), the receiver reads the sample where it lies.
+//! [`Endpoint`] over a bus [`Transport`]: the sender fills the transport's buffer in place
+//! (`Publisher::send_with`), the receiver checks the frame where the transport hands it over.
+//!
+//! Over iceoryx2 that buffer is loaned shared memory and the receiver reads the sample where
+//! the sender wrote it; over zenoh the payload is copied into zenoh's buffers on the way out
+//! and out of them on the way in (see `gprflow::bus::zenoh`).
 
 use std::time::{Duration, Instant};
 
@@ -17,7 +21,7 @@ const WAIT_SLICE: Duration = Duration::from_millis(50);
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// One process's publisher and subscriber of a phase.
-pub struct IoxEndpoint {
+pub struct BusEndpoint {
     publisher: Box<dyn Publisher>,
     subscriber: Box<dyn Subscriber>,
     /// The subscriber's topic, for error messages.
@@ -27,9 +31,9 @@ pub struct IoxEndpoint {
     patience: Patience,
 }
 
-impl std::fmt::Debug for IoxEndpoint {
+impl std::fmt::Debug for BusEndpoint {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("IoxEndpoint")
+        f.debug_struct("BusEndpoint")
             .field("publishes", &self.publisher.topic())
             .field("subscribes", &self.subscriber.topic())
             .field("mode", &self.mode)
@@ -46,9 +50,9 @@ pub enum Side {
     Partner,
 }
 
-impl IoxEndpoint {
+impl BusEndpoint {
     /// Opens this side's ports of `phase` (both processes derive the same topic settings
-    /// from the phase); [`IoxEndpoint::handshake`] connects them.
+    /// from the phase); [`BusEndpoint::handshake`] connects them.
     ///
     /// # Errors
     /// The transport's errors.
@@ -86,7 +90,7 @@ impl IoxEndpoint {
     }
 }
 
-impl Endpoint for IoxEndpoint {
+impl Endpoint for BusEndpoint {
     fn send(&mut self, seq: u64, len: usize, seed: u8) -> Result<()> {
         let reached = self
             .publisher
