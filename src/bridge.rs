@@ -116,8 +116,8 @@ pub struct RouteReport {
 /// # Errors
 /// Bad parameters, a zenoh session that cannot open, or the first route that failed, named.
 pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteReport>, StageError> {
-    let params: BridgeParams = serde_json::from_value(spec.params.clone())
-        .map_err(|e| StageError::Failed(format!("bridge params: {e}")))?;
+    let params: BridgeParams =
+        serde_json::from_value(spec.params.clone()).map_err(|e| StageError::Failed(format!("bridge params: {e}")))?;
     let session_prefix = zbus::key_prefix(&params.graph, &params.host).map_err(StageError::Failed)?;
     let zenoh = ZenohTransport::open(&params.zenoh, &session_prefix, stop.clone())?;
     let handshake = Duration::from_millis(spec.handshake_timeout_ms);
@@ -190,7 +190,9 @@ pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteRe
     }
     match failure {
         Some(f) => Err(StageError::Failed(f)),
-        None if stop.load(Ordering::Relaxed) && reports.len() < params.routes.len() => Err(StageError::Bus(BusError::Shutdown)),
+        None if stop.load(Ordering::Relaxed) && reports.len() < params.routes.len() => {
+            Err(StageError::Bus(BusError::Shutdown))
+        }
         None => Ok(reports),
     }
 }

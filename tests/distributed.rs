@@ -48,7 +48,10 @@ impl Hosts {
         let base_if = format!("gz{id}n{net}b");
         // a namespace left by an earlier run that was killed
         for ns in [&hosts.robot, &hosts.base] {
-            let _ = Command::new("ip").args(["netns", "del", ns]).stderr(Stdio::null()).status();
+            let _ = Command::new("ip")
+                .args(["netns", "del", ns])
+                .stderr(Stdio::null())
+                .status();
         }
         ip(&["netns", "add", &hosts.robot]);
         ip(&["netns", "add", &hosts.base]);
@@ -73,7 +76,7 @@ impl Hosts {
         format!("10.77.{}.2", self.net)
     }
 
-        /// Starts `gprflow ARGS` inside namespace `ns`.
+    /// Starts `gprflow ARGS` inside namespace `ns`.
     fn spawn(&self, ns: &str, args: &[&str], log: &Path) -> Child {
         let file = std::fs::File::create(log).expect("log file");
         Command::new("ip")
@@ -123,7 +126,11 @@ fn gprflow(args: &[&str]) -> Output {
 }
 
 fn text(o: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
 }
 
 /// `graph`'s text with its `record:` line replaced and a `hosts:` section added.
@@ -141,7 +148,18 @@ fn run_split(hosts: &Hosts, graph_file: &Path, record: &Path, extra: &[&str], li
     let log = ["--log", "info,zenoh_transport=debug"];
     let mut robot_args = [log.as_slice(), &["launch", graph, "--host", "robot"]].concat();
     robot_args.extend(extra);
-    let mut base_args = [log.as_slice(), &["launch", graph, "--host", "base", "--record", record.to_str().expect("utf8")]].concat();
+    let mut base_args = [
+        log.as_slice(),
+        &[
+            "launch",
+            graph,
+            "--host",
+            "base",
+            "--record",
+            record.to_str().expect("utf8"),
+        ],
+    ]
+    .concat();
     base_args.extend(extra);
     let robot = hosts.spawn(&hosts.robot, &robot_args, &dir.join("robot.log"));
     let base = hosts.spawn(&hosts.base, &base_args, &dir.join("base.log"));
@@ -162,7 +180,12 @@ fn assert_same(a: &Path, b: &Path) {
 fn localisation_split_over_two_hosts_records_what_one_host_records() {
     let dir = tempfile::tempdir().expect("tempdir");
     let single = dir.path().join("single.mcap");
-    let o = gprflow(&["launch", "graphs/localize.yaml", "--record", single.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "launch",
+        "graphs/localize.yaml",
+        "--record",
+        single.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
 
     let hosts = Hosts::new(1);
@@ -180,7 +203,11 @@ fn localisation_split_over_two_hosts_records_what_one_host_records() {
     let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &graph, &split, &[], Duration::from_secs(240));
     assert!(robot_ok && base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
     // imu, wheel, truth and registrations go to base, the estimate comes back as feedback
-    for route in ["`ingest/imu` to host `base`", "`register/registration` to host `base`", "`estimate/state` from host `base`"] {
+    for route in [
+        "`ingest/imu` to host `base`",
+        "`register/registration` to host `base`",
+        "`estimate/state` from host `base`",
+    ] {
         assert!(robot_log.contains(route), "robot relays {route}:\n{robot_log}");
     }
     assert_same(&single, &split);
@@ -205,7 +232,12 @@ fn a_link_cut_for_seconds_loses_nothing() {
     let single_graph = dir.path().join("single.yaml");
     std::fs::write(&single_graph, format!("{nodes}record: {{ topics: [\"*\"] }}\n")).expect("graph");
     let single = dir.path().join("single.mcap");
-    let o = gprflow(&["launch", single_graph.to_str().expect("utf8"), "--record", single.to_str().expect("utf8")]);
+    let o = gprflow(&[
+        "launch",
+        single_graph.to_str().expect("utf8"),
+        "--record",
+        single.to_str().expect("utf8"),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
 
     let graph = dir.path().join("cut.yaml");
@@ -228,11 +260,18 @@ fn a_link_cut_for_seconds_loses_nothing() {
     let down = cutter.join().expect("cutter");
     assert!(robot_ok && base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
     // 135 s of recording at 10x: the run was still going when the link came back
-    assert!(wall > Duration::from_secs(3) + down, "run took {wall:?}, link down {down:?}");
+    assert!(
+        wall > Duration::from_secs(3) + down,
+        "run took {wall:?}, link down {down:?}"
+    );
     // zenoh closed the session and opened a new one
     for side in [&robot_log, &base_log] {
         assert!(side.contains("Closing transport"), "session closed:\n{side}");
-        assert_eq!(side.matches("New transport opened").count(), 2, "session reopened:\n{side}");
+        assert_eq!(
+            side.matches("New transport opened").count(),
+            2,
+            "session reopened:\n{side}"
+        );
     }
     let resent: u64 = robot_log
         .lines()
@@ -268,13 +307,17 @@ fn a_link_down_for_good_is_reported_with_topic_and_seqs() {
     };
     let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(&hosts, &graph, &split, &[], Duration::from_secs(60));
     cutter.join().expect("cutter");
-    assert!(!robot_ok && !base_ok, "both sides fail:\nrobot:\n{robot_log}\nbase:\n{base_log}");
+    assert!(
+        !robot_ok && !base_ok,
+        "both sides fail:\nrobot:\n{robot_log}\nbase:\n{base_log}"
+    );
     // the sending side names the topic and the seqs it could not deliver
     let lost = robot_log
         .lines()
         .find(|l| l.contains("link down") && l.contains("ingest/gpr"))
         .unwrap_or_else(|| panic!("robot reports the loss:\n{robot_log}"));
     assert!(lost.contains("data frames seq"), "{lost}");
+    eprintln!("reported: {lost}");
     assert!(
         base_log.contains("link down"),
         "base reports the silent link:\n{base_log}"
@@ -315,8 +358,13 @@ fn tls_with_an_allow_list_admits_only_the_named_host() {
     let bad = dir.path().join("bad.yaml");
     std::fs::write(&bad, graph_for("intruder")).expect("graph");
     let rec = dir.path().join("bad.mcap");
-    let [(robot_ok, robot_log), (base_ok, base_log)] =
-        run_split(&hosts, &bad, &rec, &["--remote-timeout-s", "4"], Duration::from_secs(60));
+    let [(robot_ok, robot_log), (base_ok, base_log)] = run_split(
+        &hosts,
+        &bad,
+        &rec,
+        &["--remote-timeout-s", "4"],
+        Duration::from_secs(60),
+    );
     assert!(!robot_ok && !base_ok, "robot:\n{robot_log}\nbase:\n{base_log}");
     assert!(
         robot_log.contains("host `base` did not subscribe"),
@@ -340,13 +388,18 @@ fn bad_host_sections_are_refused_with_file_and_key() {
         let graph = dir.path().join(format!("bad{i}.yaml"));
         std::fs::write(
             &graph,
-            format!("name: bad\nnodes:\n  gen: {{ stage: toy_source }}\nhosts:\n  robot: {{ nodes: [gen], {zenoh} }}\n"),
+            format!(
+                "name: bad\nnodes:\n  gen: {{ stage: toy_source }}\nhosts:\n  robot: {{ nodes: [gen], {zenoh} }}\n"
+            ),
         )
         .expect("graph");
         let o = gprflow(&["launch", graph.to_str().expect("utf8"), "--host", "robot"]);
         let out = text(&o);
         assert!(!o.status.success(), "{zenoh}: {out}");
-        assert!(out.contains(&format!("bad{i}.yaml:5")), "{zenoh}: names file and line: {out}");
+        assert!(
+            out.contains(&format!("bad{i}.yaml:5")),
+            "{zenoh}: names file and line: {out}"
+        );
         assert!(out.contains(expected), "{zenoh}: {out}");
     }
     // certificates that are not there, and recording asked of the wrong host
@@ -360,9 +413,17 @@ fn bad_host_sections_are_refused_with_file_and_key() {
     let o = gprflow(&["launch", g, "--host", "robot"]);
     assert!(!o.status.success() && text(&o).contains("tls.root_ca"), "{}", text(&o));
     let o = gprflow(&["launch", g, "--host", "robot", "--record", "x.mcap"]);
-    assert!(!o.status.success() && text(&o).contains("writes the recording, not `robot`"), "{}", text(&o));
+    assert!(
+        !o.status.success() && text(&o).contains("writes the recording, not `robot`"),
+        "{}",
+        text(&o)
+    );
     let o = gprflow(&["launch", g, "--host", "base"]);
-    assert!(!o.status.success() && text(&o).contains("give it --record FILE"), "{}", text(&o));
+    assert!(
+        !o.status.success() && text(&o).contains("give it --record FILE"),
+        "{}",
+        text(&o)
+    );
 }
 
 /// What each host's launcher plans (`--dry-run`): the producer's output counts the bridge
@@ -448,5 +509,66 @@ fn each_host_plans_its_share_with_a_bridge() {
         ]
     );
     // all on one machine: no bridge
-    assert_eq!(names(&plan(&["--record", "x.mcap"])), ["gen", "gain", "again", "__record"]);
+    assert_eq!(
+        names(&plan(&["--record", "x.mcap"])),
+        ["gen", "gain", "again", "__record"]
+    );
+}
+
+/// The shipped two-host examples run as the README says, both hosts on this machine.
+#[test]
+fn the_shipped_two_host_examples_run_on_loopback() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let certs = dir.path().join("certs");
+    let o = Command::new(repo().join("tools/scripts/make-certs.sh"))
+        .arg(&certs)
+        .args(["robot=127.0.0.1", "base=127.0.0.1"])
+        .output()
+        .expect("make-certs.sh runs");
+    assert!(o.status.success(), "{}", text(&o));
+    // the TLS example names out/certs; point it at this test's certificates
+    let tls = std::fs::read_to_string(repo().join("graphs/toy-hosts-tls.yaml"))
+        .expect("graph")
+        .replace("out/certs", &certs.display().to_string());
+    let tls_graph = dir.path().join("toy-hosts-tls.yaml");
+    std::fs::write(&tls_graph, tls).expect("graph");
+    for graph in [repo().join("graphs/toy-hosts.yaml"), tls_graph] {
+        let g = graph.to_str().expect("utf8");
+        let rec = dir.path().join("run.mcap");
+        let robot = Command::new(GPRFLOW)
+            .current_dir(repo())
+            .args(["launch", g, "--host", "robot", "--set", "count=300"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("robot starts");
+        let base = gprflow(&[
+            "launch",
+            g,
+            "--host",
+            "base",
+            "--set",
+            "count=300",
+            "--record",
+            rec.to_str().expect("utf8"),
+        ]);
+        let robot = robot.wait_with_output().expect("robot ends");
+        assert!(
+            base.status.success() && robot.status.success(),
+            "{g}:\nbase: {}\nrobot: {}",
+            text(&base),
+            text(&robot)
+        );
+        let single = dir.path().join("single.mcap");
+        let o = gprflow(&[
+            "launch",
+            "graphs/toy.yaml",
+            "--set",
+            "count=300",
+            "--record",
+            single.to_str().expect("utf8"),
+        ]);
+        assert!(o.status.success(), "{}", text(&o));
+        assert_same(&single, &rec);
+    }
 }

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use gprflow::bus::inproc::InProcess;
 use gprflow::bus::iox::IoxTransport;
 use gprflow::bus::zenoh::ZenohTransport;
-use gprflow::graph::ZenohDecl;
 use gprflow::bus::{self, BusError, Delivery, FrameHeader, Inbox, Outbox, TopicConfig, Transport};
+use gprflow::graph::ZenohDecl;
 use gprflow::msg::{self, Header, Message, Trace};
 
 const TIMEOUT: Duration = Duration::from_secs(10);

@@ -180,7 +180,9 @@ pub enum BusError {
         watermark_ns: i64,
     },
     /// Nothing was heard from the other end of a topic across machines for the link timeout.
-    #[error("topic `{topic}`: no word from the other host for {waited:?} (link down); data frames seq {first}..{last} not delivered")]
+    #[error(
+        "topic `{topic}`: no word from the other host for {waited:?} (link down); data frames seq {first}..{last} not delivered"
+    )]
     LinkDown {
         /// Topic concerned.
         topic: String,

@@ -31,7 +31,9 @@ use ::zenoh::Wait;
 use ::zenoh::bytes::ZBytes;
 use ::zenoh::qos::{CongestionControl, Priority};
 
-use super::{BusError, FillFn, Frame, FrameData, FrameHeader, FrameKind, Publisher, Result, Subscriber, TopicConfig, Transport};
+use super::{
+    BusError, FillFn, Frame, FrameData, FrameHeader, FrameKind, Publisher, Result, Subscriber, TopicConfig, Transport,
+};
 use crate::graph::ZenohDecl;
 
 /// Default of [`ZenohDecl::link_timeout_s`].
@@ -112,7 +114,9 @@ fn ack_bytes(kind: u8, received: u64, consumed: u64) -> Vec<u8> {
 pub fn key_prefix(graph: &str, host: &str) -> std::result::Result<String, String> {
     for (what, name) in [("graph name", graph), ("host name", host)] {
         if name.is_empty() || name.contains(['/', '*', '$', '?', '#', ' ']) {
-            return Err(format!("{what} `{name}` cannot be part of a zenoh key (no `/ * $ ? #` or spaces)"));
+            return Err(format!(
+                "{what} `{name}` cannot be part of a zenoh key (no `/ * $ ? #` or spaces)"
+            ));
         }
     }
     Ok(format!("gprflow/{graph}/{host}"))
@@ -182,8 +186,14 @@ pub fn config(decl: &ZenohDecl) -> std::result::Result<::zenoh::Config, String> 
         set("transport/link/tls/root_ca_certificate", tls.root_ca.as_str().into())?;
         set("transport/link/tls/listen_certificate", tls.certificate.as_str().into())?;
         set("transport/link/tls/listen_private_key", tls.private_key.as_str().into())?;
-        set("transport/link/tls/connect_certificate", tls.certificate.as_str().into())?;
-        set("transport/link/tls/connect_private_key", tls.private_key.as_str().into())?;
+        set(
+            "transport/link/tls/connect_certificate",
+            tls.certificate.as_str().into(),
+        )?;
+        set(
+            "transport/link/tls/connect_private_key",
+            tls.private_key.as_str().into(),
+        )?;
         set("transport/link/tls/enable_mtls", true.into())?;
         set("transport/link/tls/verify_name_on_connect", true.into())?;
     }
@@ -211,16 +221,29 @@ pub fn config(decl: &ZenohDecl) -> std::result::Result<::zenoh::Config, String> 
 
 fn check_endpoint(endpoint: &str, tls: bool) -> std::result::Result<(), String> {
     let Some((proto, address)) = endpoint.split_once('/') else {
-        return Err(format!("endpoint `{endpoint}`: expected PROTOCOL/ADDRESS:PORT (tcp/10.0.0.1:7447)"));
+        return Err(format!(
+            "endpoint `{endpoint}`: expected PROTOCOL/ADDRESS:PORT (tcp/10.0.0.1:7447)"
+        ));
     };
     match proto {
         "tcp" => {}
         "tls" if tls => {}
-        "tls" => return Err(format!("endpoint `{endpoint}`: a tls/ endpoint needs the host's `tls:` certificates")),
-        _ => return Err(format!("endpoint `{endpoint}`: protocol `{proto}` is not built in (tcp, tls)")),
+        "tls" => {
+            return Err(format!(
+                "endpoint `{endpoint}`: a tls/ endpoint needs the host's `tls:` certificates"
+            ));
+        }
+        _ => {
+            return Err(format!(
+                "endpoint `{endpoint}`: protocol `{proto}` is not built in (tcp, tls)"
+            ));
+        }
     }
     let address = address.split('#').next().unwrap_or(address);
-    if address.rsplit_once(':').is_none_or(|(_, port)| port.parse::<u16>().is_err()) {
+    if address
+        .rsplit_once(':')
+        .is_none_or(|(_, port)| port.parse::<u16>().is_err())
+    {
         return Err(format!("endpoint `{endpoint}`: expected ADDRESS:PORT after `{proto}/`"));
     }
     Ok(())
@@ -254,7 +277,9 @@ impl ZenohTransport {
         let session = ::zenoh::open(config)
             .wait()
             .map_err(|e| err(key_prefix, format!("cannot open the zenoh session: {e}")))?;
-        let link_timeout = decl.link_timeout_s.map_or(DEFAULT_LINK_TIMEOUT, Duration::from_secs_f64);
+        let link_timeout = decl
+            .link_timeout_s
+            .map_or(DEFAULT_LINK_TIMEOUT, Duration::from_secs_f64);
         Ok(Self {
             session,
             key_prefix: key_prefix.trim_end_matches('/').to_owned(),
@@ -386,9 +411,7 @@ impl PubShared {
         let now = Instant::now();
         let resend: Vec<ZBytes> = {
             let mut st = lock(&self.state);
-            let stalled = st
-                .last_progress
-                .is_none_or(|t| now.duration_since(t) > RESEND_AFTER);
+            let stalled = st.last_progress.is_none_or(|t| now.duration_since(t) > RESEND_AFTER);
             let outstanding = st.window.iter().any(|p| p.link >= st.received);
             if outstanding && (st.resend_now || stalled) && !st.gone {
                 st.resend_now = false;
@@ -410,7 +433,11 @@ impl PubShared {
             *last_beat = now;
             let next = lock(&self.state).next_link;
             let mut beat = vec![0u8; ENVELOPE];
-            write_header(&mut beat, PUBLISHER_HEARTBEAT, &FrameHeader::control(FrameKind::Watermark, next, 0));
+            write_header(
+                &mut beat,
+                PUBLISHER_HEARTBEAT,
+                &FrameHeader::control(FrameKind::Watermark, next, 0),
+            );
             self.put(beat.into())?;
         }
         Ok(())

@@ -289,7 +289,11 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
                     required_subscribers: required + 1,
                 });
             }
-            recorded.push((topic.clone(), msg_type, topic_latest_only(graph, from_node, from_output)));
+            recorded.push((
+                topic.clone(),
+                msg_type,
+                topic_latest_only(graph, from_node, from_output),
+            ));
         }
     }
 

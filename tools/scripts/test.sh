@@ -9,6 +9,8 @@ tools/peer/setup-venv.sh
 tools/scripts/ensure-font.sh
 # the learned registration model runs on ONNX Runtime (libonnxruntime from the PyPI wheel)
 tools/scripts/ensure-onnxruntime.sh
+# the distributed tests run hosts in network namespaces (iproute2) with TLS (openssl)
+tools/scripts/ensure-netns-tools.sh
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
 # end-to-end tests also run the workspace's other binaries (a user's exec stage)

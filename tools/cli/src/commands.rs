@@ -77,7 +77,10 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     opts.record.clone_from(&args.record);
     opts.host.clone_from(&args.host);
     if !(args.remote_timeout_s.is_finite() && args.remote_timeout_s > 0.0) {
-        bail!("--remote-timeout-s {}: must be a positive number of seconds", args.remote_timeout_s);
+        bail!(
+            "--remote-timeout-s {}: must be a positive number of seconds",
+            args.remote_timeout_s
+        );
     }
     opts.remote_timeout = std::time::Duration::from_secs_f64(args.remote_timeout_s.min(1e6));
     opts.buffer = args.buffer.max(1);
