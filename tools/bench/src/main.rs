@@ -116,3 +116,31 @@ fn main() -> anyhow::Result<()> {
         Some(Command::Echo(args)) => echo::run(&args),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const ENDPOINT: &str = "tcp/10.77.50.1:7447";
+
+    #[test]
+    fn zenoh_options_come_with_a_listening_endpoint() {
+        let parse = |args: &[&str]| Cli::try_parse_from(["gprflow-bench"].iter().chain(args));
+        assert!(parse(&["ipc", "--zenoh-partner-netns", "ns2"]).is_err());
+        assert!(parse(&["ipc", "--zenoh-connect", ENDPOINT]).is_err());
+        let Ok(cli) = parse(&["--zenoh-listen", ENDPOINT, "--zenoh-partner-netns", "ns2"]) else {
+            panic!("the default command takes the zenoh options");
+        };
+        assert_eq!(cli.ipc.zenoh_listen.as_deref(), Some(ENDPOINT));
+        assert_eq!(cli.ipc.zenoh_partner_netns.as_deref(), Some("ns2"));
+    }
+
+    #[test]
+    fn a_partner_serves_at_least_one_link() {
+        let parse = |args: &[&str]| Cli::try_parse_from(["gprflow-bench", "echo"].iter().chain(args));
+        assert!(parse(&[]).is_err());
+        assert!(parse(&["--prefix", "gfb1_"]).is_err(), "iceoryx2 comes with the socket");
+        assert!(parse(&["--prefix", "gfb1_", "--socket", "gfb1_uds"]).is_ok());
+        assert!(parse(&["--zenoh-connect", ENDPOINT]).is_ok());
+    }
+}

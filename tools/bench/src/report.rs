@@ -4,7 +4,7 @@ use std::fmt::Write as _;
 
 use serde::Serialize;
 
-use crate::plan::{Counts, SIZES, WaitMode};
+use crate::plan::{Counts, SIZES, WaitMode, ZenohSetup};
 use crate::stats::{LatencySummary, Throughput};
 
 /// The 1 MiB iceoryx2 hop must take less than this fraction of the Unix socket's.
@@ -22,6 +22,9 @@ pub enum Subject {
     Iceoryx2,
     /// One hop between processes over a Unix stream socket.
     UnixSocket,
+    /// One hop between processes over `gprflow::bus::zenoh::ZenohTransport` (see
+    /// [`Report::zenoh`]).
+    Zenoh,
     /// `copy_from_slice` between two buffers of one process.
     Memcpy,
     /// Writing the payload pattern into a buffer of one process (the senders' share).
@@ -29,12 +32,14 @@ pub enum Subject {
 }
 
 impl Subject {
-    fn label(self) -> &'static str {
+    /// Row label; zenoh rows say how the link was set up.
+    fn label(self, zenoh: Option<&ZenohSetup>) -> String {
         match self {
-            Self::Iceoryx2 => "iceoryx2",
-            Self::UnixSocket => "Unix socket",
-            Self::Memcpy => "memcpy",
-            Self::PatternFill => "pattern fill",
+            Self::Iceoryx2 => "iceoryx2".to_owned(),
+            Self::UnixSocket => "Unix socket".to_owned(),
+            Self::Zenoh => zenoh.map_or_else(|| "zenoh".to_owned(), ZenohSetup::label),
+            Self::Memcpy => "memcpy".to_owned(),
+            Self::PatternFill => "pattern fill".to_owned(),
         }
     }
 }
@@ -109,8 +114,10 @@ pub struct Report {
     pub counts: Vec<Counts>,
     /// The receiver reads one byte in this many, in place.
     pub touch_stride_bytes: usize,
-    /// Frames a subscriber queues (iceoryx2 topics).
+    /// Frames a subscriber queues (iceoryx2 topics; zenoh's window of unconsumed frames).
     pub topic_buffer: usize,
+    /// The zenoh link, when measured.
+    pub zenoh: Option<ZenohSetup>,
     /// iceoryx2 files of the run removed after both processes ended (the per-prefix
     /// node-counter segment that iceoryx2 keeps on purpose; anything else is a leak).
     pub removed_after_run: Vec<String>,
@@ -151,20 +158,20 @@ impl Report {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "| transport | wait | size | p50 us | p99 us | throughput msg/s | GB/s |"
+            "| transport | wait | size | p50 us | p99 us | throughput msg/s | MB/s |"
         );
         let _ = writeln!(s, "|---|---|---|---:|---:|---:|---:|");
         for r in &self.rows {
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.2} | {:.2} | {:.0} | {:.2} |",
-                r.subject.label(),
+                "| {} | {} | {} | {:.2} | {:.2} | {:.0} | {:.0} |",
+                r.subject.label(self.zenoh.as_ref()),
                 r.wait.map_or("-", WaitMode::label),
                 size_label(r.size_bytes),
                 r.latency.p50_us,
                 r.latency.p99_us,
                 r.throughput.msgs_per_s,
-                r.throughput.gb_per_s,
+                r.throughput.gb_per_s * 1e3,
             );
         }
         for t in &self.targets {
@@ -202,15 +209,32 @@ impl Report {
             s,
             "- p50/p99 of transports: one hop = ping-pong round trip / 2 between two processes; the \
              sender writes every payload byte, the receiver checks one byte in {} in place \
-             (iceoryx2) or after reading the whole message into a buffer (socket).",
+             (iceoryx2), in the copy zenoh hands over (zenoh) or after reading the whole message into a \
+             buffer (socket).",
             self.touch_stride_bytes
         );
         let _ = writeln!(
             s,
             "- throughput of transports: one-way stream until the receiver acknowledged the last \
-             message; iceoryx2 topics queue {} frames, the socket uses the kernel's default buffers.",
+             message (MB = 1e6 bytes); bus topics queue {} frames, the socket uses the kernel's \
+             default buffers.",
             self.topic_buffer
         );
+        if let Some(z) = &self.zenoh {
+            let _ = writeln!(
+                s,
+                "- {}: the driver's zenoh session listens on {}, the zenoh partner's connects to {}{}; \
+                 zenoh copies each payload into its buffers on send and out of them on receive, \
+                 and acknowledges on a second key.",
+                z.label(),
+                z.listen,
+                z.connect,
+                z.partner_netns.as_deref().map_or_else(
+                    || " (same network namespace)".to_owned(),
+                    |ns| format!(" from network namespace `{ns}`")
+                )
+            );
+        }
         let _ = writeln!(
             s,
             "- in-process rows: one operation timed at a time (clock reads included); throughput = \
