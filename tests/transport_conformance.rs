@@ -22,6 +22,9 @@ const TIMEOUT: Duration = Duration::from_secs(10);
 /// Makes transport handles that see the same topics.
 trait Sut: Send + Sync + Clone + 'static {
     fn transport(&self, node: &str) -> Box<dyn Transport>;
+    /// Waits until frames the publisher handed over have reached the subscriber's queue:
+    /// at once on one machine; over a network, sends return while frames are in flight.
+    fn settle(&self) {}
 }
 
 #[derive(Clone)]
@@ -74,6 +77,10 @@ impl Sut for Zenoh {
             }
         };
         Box::new(ZenohTransport::open(&decl, &self.prefix, self.stop.clone()).expect("zenoh session"))
+    }
+
+    fn settle(&self) {
+        std::thread::sleep(Duration::from_millis(500));
     }
 }
 
@@ -212,6 +219,7 @@ fn latest_only_overwrites_and_counts_drops<S: Sut>(sut: S) {
     done_rx
         .recv_timeout(TIMEOUT)
         .expect("the publisher finished without a reader");
+    sut.settle();
     let mut got = Vec::new();
     loop {
         match next(&mut inbox) {

@@ -316,6 +316,7 @@ pub struct Frame {
 enum FrameData {
     Iox(iox::IoxSample),
     Shared(std::sync::Arc<[u8]>),
+    Owned(Vec<u8>),
     Empty,
 }
 
@@ -330,6 +331,7 @@ impl FrameData {
         match self {
             Self::Iox(s) => s.payload(),
             Self::Shared(b) => b,
+            Self::Owned(b) => b,
             Self::Empty => &[],
         }
     }

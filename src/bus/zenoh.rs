@@ -646,8 +646,10 @@ impl Publisher for ZenohPublisher {
 
 #[derive(Default)]
 struct SubState {
-    /// Received frames (header and payload) with their link seqs.
-    queue: VecDeque<(u64, FrameHeader, Arc<[u8]>)>,
+    /// Received frames with their link seqs and headers, still in zenoh's buffers: the
+    /// payload is copied out once, on the consumer's thread ([`Subscriber::try_receive`]),
+    /// not on zenoh's receive thread.
+    queue: VecDeque<(u64, FrameHeader, ZBytes)>,
     /// Every frame below this link seq has been received.
     received: u64,
     /// The consumer has taken every frame below this link seq.
@@ -675,8 +677,13 @@ impl SubShared {
         }
     }
 
-    fn on_frame(&self, b: &[u8]) {
-        let Some((link, header)) = read_header(b) else {
+    fn on_frame(&self, bytes: ZBytes) {
+        // only the envelope is read here (a large frame arrives in fragments)
+        let mut envelope = [0u8; ENVELOPE];
+        if std::io::Read::read_exact(&mut bytes.reader(), &mut envelope).is_err() {
+            return;
+        }
+        let Some((link, header)) = read_header(&envelope) else {
             return;
         };
         let now = Instant::now();
@@ -692,11 +699,11 @@ impl SubShared {
             if st.queue.len() == self.capacity {
                 st.queue.pop_front();
             }
-            st.queue.push_back((link, header, Arc::from(&b[ENVELOPE..])));
+            st.queue.push_back((link, header, bytes));
             st.received = link + 1;
             false
         } else if link == st.received && st.queue.len() < self.capacity {
-            st.queue.push_back((link, header, Arc::from(&b[ENVELOPE..])));
+            st.queue.push_back((link, header, bytes));
             st.received += 1;
             false
         } else {
@@ -715,14 +722,24 @@ impl SubShared {
     }
 }
 
-fn frame_of(header: FrameHeader, payload: Arc<[u8]>) -> Frame {
+/// The frame in `bytes` (envelope first), its payload copied out of zenoh's buffers once.
+fn frame_of(header: FrameHeader, bytes: &ZBytes) -> Frame {
+    let len = bytes.len().saturating_sub(ENVELOPE);
+    if len == 0 {
+        return Frame {
+            header,
+            data: FrameData::Empty,
+        };
+    }
+    let mut payload = Vec::with_capacity(len);
+    let mut reader = bytes.reader();
+    let mut envelope = [0u8; ENVELOPE];
+    // reading from memory zenoh holds cannot fail short of the length it reported
+    let _ = std::io::Read::read_exact(&mut reader, &mut envelope);
+    let _ = std::io::Read::read_to_end(&mut reader, &mut payload);
     Frame {
         header,
-        data: if payload.is_empty() {
-            FrameData::Empty
-        } else {
-            FrameData::Shared(payload)
-        },
+        data: FrameData::Owned(payload),
     }
 }
 
@@ -765,7 +782,7 @@ impl ZenohSubscriber {
         let frames = t
             .session
             .declare_subscriber(data_key)
-            .callback(move |sample| on_frame.on_frame(&sample.payload().to_bytes()))
+            .callback(move |sample| on_frame.on_frame(sample.payload().clone()))
             .wait()
             .map_err(|e| err(&topic.name, format!("zenoh subscriber: {e}")))?;
         let beating = shared.clone();
@@ -815,7 +832,7 @@ impl Subscriber for ZenohSubscriber {
 
     fn try_receive(&mut self) -> Result<Option<Frame>> {
         let mut st = lock(&self.shared.state);
-        let Some((link, header, payload)) = st.queue.pop_front() else {
+        let Some((link, header, bytes)) = st.queue.pop_front() else {
             if let Some(heard) = st.last_heard
                 && heard.elapsed() > self.link_timeout
             {
@@ -829,13 +846,13 @@ impl Subscriber for ZenohSubscriber {
             }
             return Ok(None);
         };
-        let frame = frame_of(header, payload);
         st.consumed = link + 1;
-        if frame.kind() == Some(FrameKind::Data) {
-            st.last_seq = Some(frame.header.seq);
+        if header.kind() == Some(FrameKind::Data) {
+            st.last_seq = Some(header.seq);
         }
         let (received, consumed, empty) = (st.received, st.consumed, st.queue.is_empty());
         drop(st);
+        let frame = frame_of(header, &bytes);
         // tell the publisher there is room: when half the buffer was taken or all of it
         if empty || consumed % (self.shared.capacity as u64 / 2).max(1) == 0 {
             self.shared.ack(ACK, received, consumed);
