@@ -510,6 +510,9 @@ pub fn gaussian_kernel(sigma_px: f64, truncate: f64) -> Result<Vec<f64>> {
 /// (`y[i] = Σ_k w[k] x[reflect(i + k - r)]`), using `ext` as scratch.
 fn smooth_line(line: &mut [f64], kernel: &[f64], ext: &mut Vec<f64>) {
     let n = line.len();
+    if n == 0 {
+        return; // an image with no rows or columns: nothing to smooth
+    }
     let r = (kernel.len() / 2) as isize;
     ext.clear();
     ext.extend((-r..n as isize + r).map(|i| line[reflect_index(i, n)]));
