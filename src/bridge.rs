@@ -219,6 +219,44 @@ fn next_frame(sub: &mut dyn Subscriber, stop: &dyn Fn() -> bool) -> Result<Frame
     }
 }
 
+/// Passes every frame from `from` to `to` as it is, through end of stream; each must reach
+/// `required` subscribers.
+fn relay(
+    route: &Route,
+    from: &mut dyn Subscriber,
+    to: &mut dyn Publisher,
+    required: usize,
+    stopped: &dyn Fn() -> bool,
+) -> Result<RouteReport, BusError> {
+    let mut report = RouteReport {
+        route: route.describe(),
+        frames: 0,
+        bytes: 0,
+        resent: 0,
+    };
+    loop {
+        let frame = next_frame(from, stopped)?;
+        let payload = frame.payload();
+        let reached = to.send_with(frame.header, payload.len(), &mut copy_into(payload))?;
+        if reached < required {
+            return Err(BusError::SubscriberLost {
+                topic: route.topic.clone(),
+                seq: frame.header.seq,
+                reached,
+                expected: required,
+            });
+        }
+        match frame.kind() {
+            Some(FrameKind::Data) => {
+                report.frames += 1;
+                report.bytes += payload.len() as u64;
+            }
+            Some(FrameKind::EndOfStream) => return Ok(report),
+            _ => {}
+        }
+    }
+}
+
 fn relay_out(
     route: &Route,
     iox: &IoxTransport,
@@ -245,33 +283,7 @@ fn relay_out(
         },
         other => other,
     })?;
-    let mut report = RouteReport {
-        route: route.describe(),
-        frames: 0,
-        bytes: 0,
-        resent: 0,
-    };
-    loop {
-        let frame = next_frame(local.as_mut(), &stopped)?;
-        let payload = frame.payload();
-        let reached = out.send_with(frame.header, payload.len(), &mut copy_into(payload))?;
-        if reached == 0 {
-            return Err(BusError::SubscriberLost {
-                topic: route.topic.clone(),
-                seq: frame.header.seq,
-                reached,
-                expected: 1,
-            });
-        }
-        match frame.kind() {
-            Some(FrameKind::Data) => {
-                report.frames += 1;
-                report.bytes += payload.len() as u64;
-            }
-            Some(FrameKind::EndOfStream) => break,
-            _ => {}
-        }
-    }
+    let mut report = relay(route, local.as_mut(), &mut out, 1, &stopped)?;
     drop(local);
     // everything must be taken on the other side before the only copy goes away
     out.drain(&stopped)?;
@@ -303,33 +315,13 @@ fn relay_in(
         other => other,
     })?;
     bus::wait_for_subscribers(local.as_ref(), route.subscribers, handshake, &stopped)?;
-    let mut report = RouteReport {
-        route: route.describe(),
-        frames: 0,
-        bytes: 0,
-        resent: 0,
-    };
-    loop {
-        let frame = next_frame(&mut remote_in, &stopped)?;
-        let payload = frame.payload();
-        let reached = local.send_with(frame.header, payload.len(), &mut copy_into(payload))?;
-        if reached < route.required_subscribers {
-            return Err(BusError::SubscriberLost {
-                topic: route.topic.clone(),
-                seq: frame.header.seq,
-                reached,
-                expected: route.required_subscribers,
-            });
-        }
-        match frame.kind() {
-            Some(FrameKind::Data) => {
-                report.frames += 1;
-                report.bytes += payload.len() as u64;
-            }
-            Some(FrameKind::EndOfStream) => break,
-            _ => {}
-        }
-    }
+    let report = relay(
+        route,
+        &mut remote_in,
+        local.as_mut(),
+        route.required_subscribers,
+        &stopped,
+    )?;
     // the payloads live in this process's shared memory until the readers are done
     while local.subscriber_count() > 0 && !stopped() {
         std::thread::sleep(Duration::from_millis(5));
