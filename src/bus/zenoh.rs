@@ -528,13 +528,7 @@ impl ZenohPublisher {
             }
             let heard = st.last_heard.unwrap_or(started);
             if heard.elapsed() > self.link_timeout {
-                let (first, last) = Self::undelivered(&st);
-                return Err(BusError::LinkDown {
-                    topic: self.shared.topic.clone(),
-                    waited: heard.elapsed(),
-                    first,
-                    last,
-                });
+                return Err(self.link_down(&st, heard));
             }
             st = self
                 .shared
@@ -550,6 +544,17 @@ impl ZenohPublisher {
     /// subscribed yet).
     pub fn resent(&self) -> u64 {
         self.shared.resent.load(Ordering::Relaxed)
+    }
+
+    /// The error of a link silent since `heard`, with the frames not yet received.
+    fn link_down(&self, st: &PubState, heard: Instant) -> BusError {
+        let (first, last) = Self::undelivered(st);
+        BusError::LinkDown {
+            topic: self.shared.topic.clone(),
+            waited: heard.elapsed(),
+            first,
+            last,
+        }
     }
 
     /// The data seqs of the frames not yet received, as `first..last` (one past).
@@ -600,13 +605,7 @@ impl Publisher for ZenohPublisher {
             if let Some(heard) = st.last_heard
                 && heard.elapsed() > self.link_timeout
             {
-                let (first, last) = Self::undelivered(&st);
-                return Err(BusError::LinkDown {
-                    topic: topic.clone(),
-                    waited: heard.elapsed(),
-                    first,
-                    last,
-                });
+                return Err(self.link_down(&st, heard));
             }
             st = self
                 .shared
