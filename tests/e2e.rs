@@ -285,6 +285,10 @@ fn python_mcap_reader_decodes_every_message_type() {
                 apex_time_ns: 12.0,
                 depth_m: 0.6,
                 score: 0.5,
+                submap_id: 4,
+                along_distance_m: 12.5,
+                apex_stamp: Time::from_ns(6),
+                velocity_m_per_ns: 0.12,
             }),
         ),
         (

@@ -163,6 +163,14 @@ message! {
         pub apex_time_ns: f64,
         pub depth_m: f64,
         pub score: f32,
+        /// The submap the hyperbola was found in.
+        pub submap_id: u32,
+        /// Wheel distance of the apex (the submaps' along-track coordinate), m.
+        pub along_distance_m: f64,
+        /// When the antenna passed over the apex (interpolated in the submap).
+        pub apex_stamp: Time,
+        /// Velocity of the fitted hyperbola, m/ns (the soil's over sin of the crossing angle).
+        pub velocity_m_per_ns: f64,
     }
 }
 

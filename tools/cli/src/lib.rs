@@ -14,6 +14,7 @@ use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_ingest::node::IngestStage;
 use gprflow_lgpr::node::LgprDspStage;
+use gprflow_lines::node::LinesStage;
 use gprflow_register::node::RegisterStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
@@ -30,6 +31,7 @@ pub fn catalog() -> StageCatalog {
         .with(describe::<DspSubmapStage>())
         .with(describe::<LgprDspStage>())
         .with(describe::<RegisterStage>())
+        .with(describe::<LinesStage>())
         .with(describe::<RecordStage>())
         .with(describe::<ReplayStage>())
 }
@@ -75,6 +77,7 @@ pub fn run_stage(
         DspSubmapStage::NAME => run::<DspSubmapStage>(spec, &transport, stop),
         LgprDspStage::NAME => run::<LgprDspStage>(spec, &transport, stop),
         RegisterStage::NAME => run::<RegisterStage>(spec, &transport, stop),
+        LinesStage::NAME => run::<LinesStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
         other => Err(StageError::Failed(format!(

@@ -200,6 +200,7 @@ enum Command {
     ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
     ///   gprflow radargram ../shared/data/real-gpr/GSSI_FILE____032.DZT -o dzt.png
     ///   gprflow radargram run.mcap --topic /filter/submap --submap 120 -o submap.png
+    ///   gprflow radargram slam.mcap --topic /filter/submap --features /lines/observation -o pipe.png
     Radargram {
         /// Recording, or a radar file (CMU-GPR folder, .DZT, .DT1).
         input: PathBuf,
@@ -215,6 +216,13 @@ enum Command {
         /// End, seconds after the first trace.
         #[arg(long)]
         to: Option<f64>,
+        /// Line observations (detected hyperbolas) to draw over the picture (default: the
+        /// recording's first LineObservation topic, if any).
+        #[arg(long)]
+        features: Option<String>,
+        /// Draw no line observations.
+        #[arg(long, conflicts_with = "features")]
+        no_features: bool,
         /// PNG to write.
         #[arg(short, long)]
         output: PathBuf,
@@ -360,8 +368,18 @@ fn main() -> ExitCode {
             topic,
             from,
             to,
+            features,
+            no_features,
             output,
-        } => gprflow_cli::eval::radargram_command(&input, &topic, (from, to), submap, &output),
+        } => gprflow_cli::eval::radargram_command(&gprflow_cli::eval::RadargramRequest {
+            input: &input,
+            topic: &topic,
+            window_s: (from, to),
+            submap,
+            features: features.as_deref(),
+            no_features,
+            output: &output,
+        }),
         Command::Diff {
             a,
             b,

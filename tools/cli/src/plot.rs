@@ -202,13 +202,27 @@ pub fn trajectory_and_error(
     Ok(())
 }
 
+/// A detected feature drawn over a radargram, in image coordinates (column, sample).
+#[derive(Debug, Clone)]
+pub struct Feature {
+    /// The apex.
+    pub apex: (f64, f64),
+    /// The fitted hyperbola (empty when unknown).
+    pub curve: Vec<(f64, f64)>,
+    /// Text next to the apex (line id).
+    pub label: String,
+}
+
 /// Renders traces (one column each, samples down) as a grey-scale radargram: the mean
 /// trace is removed (horizontal banding), a gain growing linearly with depth applied and
-/// the 99th percentile of magnitudes mapped to full scale.
+/// the 99th percentile of magnitudes mapped to full scale; each value a square of
+/// `pixels_per_value` pixels. `features` are drawn on top: the hyperbola in red, the apex as a cross, the
+/// label beside it.
 ///
 /// # Errors
 /// No traces, or the image cannot be written.
-pub fn radargram(path: &Path, traces: &[Vec<f32>]) -> Result<()> {
+pub fn radargram(path: &Path, traces: &[Vec<f32>], features: &[Feature], pixels_per_value: u32) -> Result<()> {
+    let block = pixels_per_value.max(1);
     let width = traces.len();
     let height = traces.iter().map(Vec::len).max().unwrap_or(0);
     if width == 0 || height == 0 {
@@ -227,15 +241,41 @@ pub fn radargram(path: &Path, traces: &[Vec<f32>]) -> Result<()> {
         .flat_map(|t| (0..height).map(move |k| value(t, k).abs()))
         .collect();
     let at = ((magnitudes.len() as f64 * 0.99) as usize).min(magnitudes.len() - 1);
-    let scale = *magnitudes.select_nth_unstable_by(at, f64::total_cmp).1;
-    let scale = if scale > 0.0 { scale } else { 1.0 };
-    let root = BitMapBackend::new(path, (width as u32, height as u32)).into_drawing_area();
+    let full_scale = *magnitudes.select_nth_unstable_by(at, f64::total_cmp).1;
+    let full_scale = if full_scale > 0.0 { full_scale } else { 1.0 };
+    let root = BitMapBackend::new(path, (width as u32 * block, height as u32 * block)).into_drawing_area();
+    let s = block as i32;
     for (x, t) in traces.iter().enumerate() {
         for k in 0..height {
-            let g = (128.0 + 127.0 * (value(t, k) / scale).clamp(-1.0, 1.0)) as u8;
-            root.draw_pixel((x as i32, k as i32), &RGBColor(g, g, g))
-                .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+            let g = (128.0 + 127.0 * (value(t, k) / full_scale).clamp(-1.0, 1.0)) as u8;
+            for (dx, dy) in (0..s).flat_map(|dx| (0..s).map(move |dy| (dx, dy))) {
+                root.draw_pixel((x as i32 * s + dx, k as i32 * s + dy), &RGBColor(g, g, g))
+                    .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+            }
         }
+    }
+    if !features.is_empty() {
+        register_font()?;
+    }
+    let err = |e: DrawingAreaErrorKind<_>| anyhow!("{}: {e}", path.display());
+    // image coordinates to the centre of the value's pixel block
+    let px = |(x, y): (f64, f64)| (((x + 0.5) * f64::from(s)) as i32, ((y + 0.5) * f64::from(s)) as i32);
+    for f in features {
+        if f.curve.len() > 1 {
+            root.draw(&PathElement::new(
+                f.curve.iter().copied().map(px).collect::<Vec<_>>(),
+                RED.stroke_width(1),
+            ))
+            .map_err(err)?;
+        }
+        let (x, y) = px(f.apex);
+        root.draw(&Cross::new((x, y), 4, YELLOW.stroke_width(2))).map_err(err)?;
+        root.draw(&Text::new(
+            f.label.clone(),
+            (x + 6, y - 14),
+            ("sans-serif", 13).into_font().color(&YELLOW),
+        ))
+        .map_err(err)?;
     }
     root.present()
         .with_context(|| format!("{}: cannot write", path.display()))?;
