@@ -182,25 +182,43 @@ pub struct LineError {
     pub matched: usize,
 }
 
-/// RMSE of (rho, theta) over lines present in both maps; the same line may be written with
-/// (rho, theta) or (-rho, theta + pi).
+/// RMSE of (rho, theta) over the estimated lines, each paired with a true line one to one,
+/// nearest first (squared rho and theta differences summed; the ids of a mapping run need
+/// not be the truth's); the same line may be written with (rho, theta) or
+/// (-rho, theta + pi). Lines left without a partner are not counted.
 pub fn line_error(estimate: &[crate::msg::HoughLine], truth: &[crate::msg::HoughLine]) -> Option<LineError> {
     let wrap = |a: f64| (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
-    let (mut sr, mut st, mut n) = (0.0, 0.0, 0usize);
-    for e in estimate {
-        let Some(t) = truth.iter().find(|t| t.id == e.id) else {
-            continue;
-        };
+    let difference = |e: &crate::msg::HoughLine, t: &crate::msg::HoughLine| {
         let direct = ((e.rho_m - t.rho_m).powi(2), wrap(e.theta_rad - t.theta_rad).powi(2));
         let flipped = (
             (-e.rho_m - t.rho_m).powi(2),
             wrap(e.theta_rad + std::f64::consts::PI - t.theta_rad).powi(2),
         );
-        let (dr, dt) = if direct.0 + direct.1 <= flipped.0 + flipped.1 {
+        if direct.0 + direct.1 <= flipped.0 + flipped.1 {
             direct
         } else {
             flipped
-        };
+        }
+    };
+    let mut pairs: Vec<(f64, f64, usize, usize)> = estimate
+        .iter()
+        .enumerate()
+        .flat_map(|(i, e)| truth.iter().enumerate().map(move |(j, t)| (i, j, e, t)))
+        .map(|(i, j, e, t)| {
+            let (dr, dt) = difference(e, t);
+            (dr, dt, i, j)
+        })
+        .filter(|(dr, dt, _, _)| (dr + dt).is_finite())
+        .collect();
+    pairs.sort_by(|a, b| (a.0 + a.1).total_cmp(&(b.0 + b.1)));
+    let (mut used_e, mut used_t) = (vec![false; estimate.len()], vec![false; truth.len()]);
+    let (mut sr, mut st, mut n) = (0.0, 0.0, 0usize);
+    for (dr, dt, i, j) in pairs {
+        if used_e[i] || used_t[j] {
+            continue;
+        }
+        used_e[i] = true;
+        used_t[j] = true;
         sr += dr;
         st += dt;
         n += 1;
@@ -296,5 +314,27 @@ mod tests {
         assert!((s.rmse - (26.0f64 / 4.0).sqrt()).abs() < 1e-12);
         assert_eq!((s.median, s.min, s.max, s.count), (2.0, 0.0, 4.0, 4));
         assert!(Stats::of(&[]).is_none());
+    }
+
+    #[test]
+    fn lines_pair_with_the_nearest_true_line_whatever_their_ids() {
+        let line = |id, rho_m, theta_rad| crate::msg::HoughLine {
+            id,
+            rho_m,
+            theta_rad,
+            covariance: [0.0; 4],
+        };
+        let truth = [line(0, 6.0, 0.2), line(1, 2.0, -1.0)];
+        // ids swapped, the second written the other way round, both a little off
+        let estimate = [line(0, 2.1, -1.0), line(1, -6.0, 0.2 + std::f64::consts::PI + 0.01)];
+        let e = line_error(&estimate, &truth).expect("matched");
+        assert_eq!(e.matched, 2);
+        assert!((e.rho_rmse_m - (0.01f64 / 2.0).sqrt()).abs() < 1e-12, "{e:?}");
+        assert!((e.theta_rmse_rad - (0.0001f64 / 2.0).sqrt()).abs() < 1e-9, "{e:?}");
+        // one estimated line: paired with its nearest only
+        let e = line_error(&estimate[..1], &truth).expect("matched");
+        assert_eq!(e.matched, 1);
+        assert!((e.rho_rmse_m - 0.1).abs() < 1e-12, "{e:?}");
+        assert!(line_error(&[], &truth).is_none());
     }
 }

@@ -30,6 +30,9 @@ pub struct AssociationParams {
     /// The line is fitted through this many of its newest apexes (default 3): the submaps'
     /// odometry drifts over a long drive.
     pub fit_points: usize,
+    /// Largest difference between the measured forward distance and the one an estimated
+    /// line predicts (the `lines` stage's line-map feedback), m (default 1.5).
+    pub max_forward_m: f64,
 }
 
 impl Default for AssociationParams {
@@ -40,6 +43,7 @@ impl Default for AssociationParams {
             min_link_m: 1.0,
             max_link_m: 12.0,
             fit_points: 3,
+            max_forward_m: 1.5,
         }
     }
 }
@@ -54,6 +58,7 @@ impl AssociationParams {
         positive("association.max_apex_time_diff_ns", self.max_apex_time_diff_ns)?;
         positive("association.min_link_m", self.min_link_m)?;
         positive("association.max_link_m", self.max_link_m)?;
+        positive("association.max_forward_m", self.max_forward_m)?;
         if self.fit_points < 2 {
             return Err(Error::Param {
                 key: "association.fit_points",
@@ -164,6 +169,22 @@ impl Associator {
         self.lines.len()
     }
 
+    /// Whether line `id` exists and its apexes' mean time is within the gate of `apex_time_ns`.
+    pub fn same_depth(&self, id: u32, apex_time_ns: f64) -> bool {
+        self.lines
+            .iter()
+            .find(|l| l.id == id)
+            .is_some_and(|l| (l.mean_apex_time_ns() - apex_time_ns).abs() <= self.params.max_apex_time_diff_ns)
+    }
+
+    /// Adds `p` to line `id` (associated by other means: the estimated line map).
+    pub fn add(&mut self, id: u32, p: GroundPoint) {
+        match self.lines.iter_mut().find(|l| l.id == id) {
+            Some(line) => line.points.push(p),
+            None => self.lines.push(LineTrack { id, points: vec![p] }),
+        }
+    }
+
     /// The id of the line `p` belongs to (a new one when none takes it); `p` is added to it.
     pub fn associate(&mut self, p: GroundPoint) -> u32 {
         let params = &self.params;
@@ -195,7 +216,7 @@ impl Associator {
                 self.lines[index].id
             }
             None => {
-                let id = self.lines.len() as u32;
+                let id = self.lines.iter().map(|l| l.id + 1).max().unwrap_or(0);
                 self.lines.push(LineTrack { id, points: vec![p] });
                 id
             }

@@ -10,15 +10,21 @@
 //! submaps still share traces. The observation is stamped with the newest submap's newest
 //! trace and carries the forward distance from the body there to the line,
 //! `s_apex + antenna_forward_m - s_end` in wheel distance `s` (negative: the line is
-//! behind), and the line id from [`crate::associate`] (apexes placed on the ground in the
-//! submaps' odometry frame).
+//! behind), and the line id from [`crate::associate`]. Apexes are placed on the ground by the
+//! estimate at the newest trace of their submap when the `estimate` feedback input is
+//! connected (it then waits for the estimate to get there), else by the submaps' own
+//! odometry (wheel and gyro dead reckoning, which drifts over a long drive). With the
+//! estimator's line map as a second feedback input (`lines`), an apex whose measured forward
+//! distance fits the one an estimated line predicts from the estimated pose belongs to that
+//! line: the two are solved together, so this holds where both have drifted from the world.
 
 use std::collections::VecDeque;
 
-use gprflow::msg::{Header, LineObservation, Message, Submap, Time};
+use gprflow::msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
 use gprflow::stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
+use gprflow_register::candidates::{Planar, Track};
 
 use crate::associate::{AssociationParams, Associator, GroundPoint};
 use crate::detect::{DetectParams, Image, detect};
@@ -100,7 +106,11 @@ struct Pending {
     velocity_m_per_ns: f64,
     score: f64,
     submap_id: u32,
-    ground: GroundPoint,
+    /// Newest trace of the submap it was found in: stamp, ns, and wheel distance, m.
+    found_end_ns: i64,
+    found_end_distance_m: f64,
+    /// The apex in the submaps' odometry frame (used without the `estimate` input).
+    odometry_ground: GroundPoint,
 }
 
 /// The newest submap's end: where observations are measured from.
@@ -128,9 +138,16 @@ pub struct LinesStage {
     pending: Vec<Pending>,
     sent: VecDeque<Sent>,
     newest: Option<Newest>,
+    /// The estimate (feedback input), when connected: the association frame.
+    estimate: Option<Track>,
+    /// The estimator's newest line map (feedback input): `(id, rho_m, theta_rad)`.
+    line_map: Vec<(u32, f64, f64)>,
     counts: Counts,
     drops: Drops,
 }
+
+/// Longest gap between two estimates that is interpolated, ns.
+const MAX_TRACK_GAP_NS: i64 = 1_000_000_000;
 
 /// Planar position and yaw of a pose message.
 fn planar(p: &gprflow::msg::Pose) -> (f64, f64, f64) {
@@ -199,7 +216,9 @@ impl LinesStage {
                 velocity_m_per_ns: h.velocity_m_per_ns,
                 score: h.score,
                 submap_id: m.id,
-                ground: GroundPoint {
+                found_end_ns: end_ns,
+                found_end_distance_m: m.end_distance_m,
+                odometry_ground: GroundPoint {
                     x_m: x0 + frac * (x1 - x0) + a * yaw.cos(),
                     y_m: y0 + frac * (y1 - y0) + a * yaw.sin(),
                     apex_time_ns: h.apex_time_ns,
@@ -224,6 +243,61 @@ impl LinesStage {
         Ok(None)
     }
 
+    /// Where an apex lies in the association frame: the estimate at the newest trace of the
+    /// submap it was found in, moved back along the heading by the wheel distance from the
+    /// apex (the nearest pose when the estimate does not reach it: at the end of a run); or
+    /// the submaps' odometry without the `estimate` input.
+    fn ground(&self, p: &Pending) -> GroundPoint {
+        let Some(track) = &self.estimate else {
+            return p.odometry_ground;
+        };
+        let pose = track
+            .at(p.found_end_ns, MAX_TRACK_GAP_NS)
+            .or_else(|| track.last_stamp_ns().and_then(|last| track.at(last, 0)));
+        match pose {
+            Some(Planar { x_m, y_m, yaw_rad }) => {
+                let forward_m = p.along_distance_m + self.params.antenna_forward_m - p.found_end_distance_m;
+                GroundPoint {
+                    x_m: x_m + forward_m * yaw_rad.cos(),
+                    y_m: y_m + forward_m * yaw_rad.sin(),
+                    apex_time_ns: p.apex_time_ns,
+                }
+            }
+            None => p.odometry_ground,
+        }
+    }
+
+    /// The estimated line whose predicted forward distance (eq. 5.6, from the estimate at
+    /// the newest trace of the apex's submap) is within `max_forward_m` of the measured one,
+    /// the nearest, at a similar apex time. The estimate and its lines are solved together,
+    /// so this holds where the estimate has drifted from the world.
+    fn mapped_line(&self, p: &Pending) -> Option<u32> {
+        let pose = self.estimate.as_ref()?.at(p.found_end_ns, MAX_TRACK_GAP_NS)?;
+        let measured_m = p.along_distance_m + self.params.antenna_forward_m - p.found_end_distance_m;
+        let gate = self.params.association.max_forward_m;
+        self.line_map
+            .iter()
+            .filter(|(id, _, _)| self.associator.same_depth(*id, p.apex_time_ns))
+            .filter_map(|&(id, rho_m, theta_rad)| {
+                let c = (pose.yaw_rad - theta_rad).cos();
+                // driving along the line: the forward distance is ill-defined
+                if c.abs() < 0.2 {
+                    return None;
+                }
+                let predicted_m = (rho_m - pose.x_m * theta_rad.cos() - pose.y_m * theta_rad.sin()) / c;
+                let miss = (predicted_m - measured_m).abs();
+                tracing::debug!(
+                    line = id,
+                    predicted_m,
+                    measured_m,
+                    "forward distance against the line map"
+                );
+                (miss <= gate).then_some((miss, id))
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, id)| id)
+    }
+
     /// Sends the pending hyperbolas the drive has left behind (all of them at the end),
     /// measured from the newest submap's end.
     fn release(&mut self, out: &mut Outputs, all: bool) -> std::result::Result<(), StageError> {
@@ -231,12 +305,24 @@ impl LinesStage {
             return Ok(());
         };
         let half = self.params.detect.half_aperture_m;
+        // with the estimate as the association frame, an apex also waits for it to arrive
+        let placed = |p: &Pending| match &self.estimate {
+            Some(t) => t.last_stamp_ns().is_some_and(|last| last >= p.found_end_ns),
+            None => true,
+        };
         let (ready, waiting): (Vec<Pending>, Vec<Pending>) = std::mem::take(&mut self.pending)
             .into_iter()
-            .partition(|p| all || (p.along_distance_m - newest.middle_distance_m).abs() > half);
+            .partition(|p| all || ((p.along_distance_m - newest.middle_distance_m).abs() > half && placed(p)));
         self.pending = waiting;
         for p in ready {
-            let line_id = self.associator.associate(p.ground);
+            let ground = self.ground(&p);
+            let line_id = match self.mapped_line(&p) {
+                Some(id) => {
+                    self.associator.add(id, ground);
+                    id
+                }
+                None => self.associator.associate(ground),
+            };
             let msg = LineObservation {
                 header: Header::new(newest.end_ns, "base_link"),
                 line_id,
@@ -253,6 +339,8 @@ impl LinesStage {
             tracing::debug!(
                 submap = p.submap_id,
                 line = line_id,
+                ground_x_m = ground.x_m,
+                ground_y_m = ground.y_m,
                 forward_m = msg.forward_distance_m,
                 apex_ns = p.apex_time_ns,
                 velocity = p.velocity_m_per_ns,
@@ -288,10 +376,24 @@ impl Stage for LinesStage {
         "subsurface line features: hyperbola detection in submaps, forward-distance observations, line association";
 
     fn inputs() -> InputPorts {
-        InputPorts::Fixed(vec![InputSpec {
-            port: PortSpec::new("submap", Submap::TYPE_NAME),
-            optional: false,
-        }])
+        InputPorts::Fixed(vec![
+            InputSpec {
+                port: PortSpec::new("submap", Submap::TYPE_NAME),
+                optional: false,
+            },
+            // the estimate, as a feedback input: where the apexes are for the association
+            // (without it, the submaps' own odometry)
+            InputSpec {
+                port: PortSpec::new("estimate", StateEstimate::TYPE_NAME),
+                optional: true,
+            },
+            // the estimator's lines, as a feedback input: an apex whose forward distance
+            // fits one of them belongs to it (needs `estimate`)
+            InputSpec {
+                port: PortSpec::new("lines", LineMap::TYPE_NAME),
+                optional: true,
+            },
+        ])
     }
 
     fn outputs(_: &Self::Params) -> std::result::Result<Vec<PortSpec>, ParamError> {
@@ -307,12 +409,38 @@ impl Stage for LinesStage {
             pending: Vec::new(),
             sent: VecDeque::new(),
             newest: None,
+            estimate: ports.input("estimate").map(|_| Track::new()),
+            line_map: Vec::new(),
             counts: Counts::default(),
             drops: Drops::new(),
         })
     }
 
     fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> std::result::Result<(), StageError> {
+        if input.name() == "estimate" {
+            let m: StateEstimate = input.decode()?;
+            let q = &m.world_from_body.pose.orientation;
+            let p = &m.world_from_body.pose.position;
+            let pose = Planar::from_quaternion(p.x, p.y, [q.x, q.y, q.z, q.w]);
+            if let Some(track) = self.estimate.as_mut()
+                && let Err(e) = track.insert(m.header.stamp.to_ns(), pose)
+            {
+                self.drops.record(Self::NAME, &input, &e.to_string());
+            }
+            // observations go out on submaps only: a feedback message's stamp is older than
+            // the output watermark
+            return Ok(());
+        }
+        if input.name() == "lines" {
+            let m: LineMap = input.decode()?;
+            self.line_map = m
+                .lines
+                .iter()
+                .filter(|l| l.rho_m.is_finite() && l.theta_rad.is_finite())
+                .map(|l| (l.id, l.rho_m, l.theta_rad))
+                .collect();
+            return Ok(());
+        }
         if input.name() != "submap" {
             return Ok(());
         }
