@@ -118,6 +118,74 @@ pub struct EvalReport {
     pub registration: Option<RegistrationError>,
     /// Hough-line error against the truth's lines.
     pub lines: Option<eval::LineError>,
+    /// Line observations (detected hyperbolas) against the truth's poses and lines.
+    pub line_observations: Option<LineObservationError>,
+}
+
+/// Line observations against the truth: each forward distance compared with the one from
+/// the true pose at its stamp to the nearest true line (eq. 5.6).
+#[derive(Debug, Clone, Serialize)]
+pub struct LineObservationError {
+    /// Topic.
+    pub topic: String,
+    /// Observations with a true pose at their stamp.
+    pub observations: usize,
+    /// Within [`LINE_MATCH_GATE_M`] of a true line's forward distance.
+    pub matched: usize,
+    /// Not near any true line: false detections.
+    pub unmatched: usize,
+    /// Forward-distance error of the matched ones (observed - true), m.
+    pub forward_distance: Option<Stats>,
+}
+
+/// An observation within this of a true line's forward distance is a detection of it, m.
+pub const LINE_MATCH_GATE_M: f64 = 0.5;
+
+fn line_observation_error(
+    run: &Recording,
+    truth: &Trajectory,
+    true_lines: &[HoughLine],
+    max_gap_ns: i64,
+) -> Option<LineObservationError> {
+    use gprflow::msg::LineObservation;
+    let mut topic = None;
+    let (mut observations, mut errors) = (0usize, Vec::new());
+    run.scan(|m| {
+        if m.msg_type != LineObservation::ROS_NAME {
+            return;
+        }
+        let Ok(o) = gprflow::msg::decode::<LineObservation>(m.data) else {
+            return;
+        };
+        topic.get_or_insert_with(|| m.topic.to_owned());
+        let Some(pose) = truth.interpolate(o.header.stamp.to_ns(), max_gap_ns) else {
+            return;
+        };
+        observations += 1;
+        let (x, y) = (pose.translation.vector.x, pose.translation.vector.y);
+        let yaw = pose.rotation.euler_angles().2;
+        let nearest = true_lines
+            .iter()
+            .filter_map(|l| {
+                let c = (yaw - l.theta_rad).cos();
+                // driving along a line: no forward distance to it
+                (c.abs() > 0.05).then(|| {
+                    let predicted = (l.rho_m - x * l.theta_rad.cos() - y * l.theta_rad.sin()) / c;
+                    o.forward_distance_m - predicted
+                })
+            })
+            .min_by(|a, b| a.abs().total_cmp(&b.abs()));
+        if let Some(e) = nearest.filter(|e| e.abs() <= LINE_MATCH_GATE_M) {
+            errors.push(e);
+        }
+    });
+    Some(LineObservationError {
+        topic: topic?,
+        observations,
+        matched: errors.len(),
+        unmatched: observations - errors.len(),
+        forward_distance: Stats::of(&errors),
+    })
 }
 
 /// Registration error: each `Registration` against the truth's relative pose between its
@@ -278,6 +346,9 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         )?;
     }
     let registration = registration_error(&run, &truth, (args.max_gap_ms * 1e6) as i64);
+    let line_observations = true_lines
+        .as_ref()
+        .and_then(|(_, l)| line_observation_error(&run, &truth, l, (args.max_gap_ms * 1e6) as i64));
     Ok(EvalReport {
         estimate: format!("{} {topic}", args.run.display()),
         truth: format!("{} {truth_topic}", truth_rec.path().display()),
@@ -292,7 +363,18 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         cross_track: Stats::of(&cross),
         registration,
         lines,
+        line_observations,
     })
+}
+
+fn line_observation_summary(o: &LineObservationError) -> String {
+    let error = o.forward_distance.as_ref().map_or(String::new(), |s| {
+        format!(", forward-distance error RMSE {:.4} m, mean {:+.4} m", s.rmse, s.mean)
+    });
+    format!(
+        "line observations on {}: {} of {} on a true line (within {LINE_MATCH_GATE_M} m), {} not{error}",
+        o.topic, o.matched, o.observations, o.unmatched
+    )
 }
 
 fn stats_row(name: &str, s: &Option<Stats>, markdown: bool) -> String {
@@ -354,6 +436,9 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
                     l.matched, l.rho_rmse_m, l.theta_rmse_rad
                 )?;
             }
+            if let Some(o) = &r.line_observations {
+                writeln!(out, "\n{}", line_observation_summary(o))?;
+            }
         }
         ReportFormat::Text => {
             writeln!(out, "estimate  {} ({} poses)", r.estimate, r.estimate_poses)?;
@@ -387,6 +472,9 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
                     "lines ({} matched): rho RMSE {:.4} m, theta RMSE {:.4} rad",
                     l.matched, l.rho_rmse_m, l.theta_rmse_rad
                 )?;
+            }
+            if let Some(o) = &r.line_observations {
+                writeln!(out, "{}", line_observation_summary(o))?;
             }
         }
     }
