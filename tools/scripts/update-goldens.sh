@@ -11,7 +11,7 @@ cargo build -p gprflow-cli
 bin=target/debug/gprflow
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-for graph in toy replay-toy odometry; do
+for graph in toy replay-toy odometry slam; do
     "$bin" launch "graphs/$graph.yaml" --record "$tmp/$graph.mcap"
     golden="recordings/golden/$graph.mcap"
     if [[ -f "$golden" ]]; then
