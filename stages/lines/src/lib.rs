@@ -3,16 +3,18 @@
 //! distance from the apex to the newest trace is the robot's *forward distance* to the line
 //! (§5.4, Fig. 5.5), the measurement of the line factor (eq. 5.7).
 //!
-//! - [`detect`]: automatic hyperbola detection (§5.2.3; the thesis picked them by hand). A
+//! - [`mod@detect`]: automatic hyperbola detection (§5.2.3; the thesis picked them by hand). A
 //!   diffraction stack: for every apex (column, time) and every trial velocity the image is
 //!   summed along the hyperbola `t(x) = sqrt(t0^2 + (2 (x - x0) / v)^2)` and normalised by the
 //!   image's robust noise level; local maxima above `min_score` whose whole aperture lies in
 //!   the submap are hyperbolas. An oblique crossing (angle `phi` between track and line)
 //!   flattens the hyperbola to the velocity `v / sin(phi)`, so the trial velocities run from
 //!   the soil's up to several times it.
-//! - [`associate`]: which line an apex belongs to. Apexes are placed on the ground in the
-//!   submaps' odometry frame; an apex joins the line whose fitted ground line passes within
-//!   `max_cross_m` of it at a similar apex time, else starts a new line.
+//! - [`associate`]: which line an apex belongs to. Apexes are placed on the ground (by the
+//!   estimate fed back to the stage, or the submaps' own odometry); an apex joins the line
+//!   whose fitted ground line passes within `max_cross_m` of it at a similar apex time, else
+//!   starts a new line. The stage first tries the estimator's own lines: the one whose
+//!   predicted forward distance fits the measured one.
 //!
 //! `node` (feature `node`, default): the `lines` stage.
 

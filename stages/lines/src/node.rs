@@ -1,6 +1,6 @@
 //! The `lines` stage: submaps in, [`LineObservation`]s out (seed 000 §5.4).
 //!
-//! Every valid submap is searched for hyperbolas ([`crate::detect`]). A hyperbola is taken
+//! Every valid submap is searched for hyperbolas ([`mod@crate::detect`]). A hyperbola is taken
 //! from the submaps where its apex has reached the middle (seen with as much ground on both
 //! sides as the submap holds, so the edge does not pull the fit). Submaps overlap, so the
 //! same hyperbola (apexes within the half aperture along track and `separation_ns` in time)
@@ -402,6 +402,14 @@ impl Stage for LinesStage {
 
     fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
         params.check().map_err(param_error)?;
+        if ports.input("lines").is_some() && ports.input("estimate").is_none() {
+            return Err(StageError::Params(ParamError {
+                path: vec!["association".into()],
+                message: "the `lines` input (the estimated line map) needs the `estimate` input: lines are \
+                          matched by the forward distance predicted from the estimated pose"
+                    .into(),
+            }));
+        }
         Ok(Self {
             associator: Associator::new(params.association.clone()).map_err(param_error)?,
             params,
