@@ -24,7 +24,7 @@ use gprflow::msg::{Header, LineMap, LineObservation, Message, StateEstimate, Sub
 use gprflow::stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
-use gprflow_register::candidates::{Planar, Track};
+use gprflow_register::candidates::{Planar, Track, wrap};
 
 use crate::associate::{AssociationParams, Associator, GroundPoint};
 use crate::detect::{DetectParams, Image, detect};
@@ -149,11 +149,10 @@ pub struct LinesStage {
 /// Longest gap between two estimates that is interpolated, ns.
 const MAX_TRACK_GAP_NS: i64 = 1_000_000_000;
 
-/// Planar position and yaw of a pose message.
-fn planar(p: &gprflow::msg::Pose) -> (f64, f64, f64) {
+/// The planar pose of a pose message.
+fn planar(p: &gprflow::msg::Pose) -> Planar {
     let q = &p.orientation;
-    let yaw = (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z));
-    (p.position.x, p.position.y, yaw)
+    Planar::from_quaternion(p.position.x, p.position.y, [q.x, q.y, q.z, q.w])
 }
 
 impl LinesStage {
@@ -191,8 +190,16 @@ impl LinesStage {
             self.sent.pop_front();
         }
         let last = cols.saturating_sub(1).max(1) as f64;
-        let (x0, y0, yaw0) = planar(&m.start_pose);
-        let (x1, y1, yaw1) = planar(&m.end_pose);
+        let Planar {
+            x_m: x0,
+            y_m: y0,
+            yaw_rad: yaw0,
+        } = planar(&m.start_pose);
+        let Planar {
+            x_m: x1,
+            y_m: y1,
+            yaw_rad: yaw1,
+        } = planar(&m.end_pose);
         let along_at = |frac: f64| m.start_distance_m + frac * (m.end_distance_m - m.start_distance_m);
         // an apex is taken once it reaches the middle of the submap: seen with as much ground
         // on either side as the submap holds, its fit is not pulled by the edge
@@ -359,16 +366,6 @@ impl LinesStage {
     }
 }
 
-/// An angle wrapped to `(-pi, pi]`.
-fn wrap(a: f64) -> f64 {
-    let t = (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
-    if t <= -std::f64::consts::PI {
-        t + std::f64::consts::TAU
-    } else {
-        t
-    }
-}
-
 impl Stage for LinesStage {
     type Params = LinesParams;
     const NAME: &'static str = "lines";
@@ -427,9 +424,7 @@ impl Stage for LinesStage {
     fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> std::result::Result<(), StageError> {
         if input.name() == "estimate" {
             let m: StateEstimate = input.decode()?;
-            let q = &m.world_from_body.pose.orientation;
-            let p = &m.world_from_body.pose.position;
-            let pose = Planar::from_quaternion(p.x, p.y, [q.x, q.y, q.z, q.w]);
+            let pose = planar(&m.world_from_body.pose);
             if let Some(track) = self.estimate.as_mut()
                 && let Err(e) = track.insert(m.header.stamp.to_ns(), pose)
             {
