@@ -29,6 +29,33 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+/// The pipe-field sample that `graphs/slam.yaml` reads (`recording`), made on demand as
+/// `tools/sim/make-samples.sh` makes it (the simulator is deterministic; too big to commit).
+/// Tests running at once each write their own copy and move it into place.
+fn pipe_sample() -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("samples");
+    let path = dir.join(PIPE_SAMPLE_NAME);
+    if !path.exists() {
+        std::fs::create_dir_all(&dir).expect("samples dir");
+        let partial = dir.join(format!("{PIPE_SAMPLE_NAME}.{}", std::process::id()));
+        let o = gprflow(&[
+            "sim",
+            "tools/sim/scenarios/pipes_one_line.yaml",
+            "--run",
+            "lawnmower",
+            "--duration",
+            "150",
+            "-o",
+            partial.to_str().expect("utf8"),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        std::fs::rename(&partial, &path).expect("sample in place");
+    }
+    path
+}
+
+const PIPE_SAMPLE_NAME: &str = "pipes-lawnmower-150s.mcap";
+
 /// Payloads per topic, in file order.
 fn payloads(path: &Path) -> BTreeMap<String, Vec<Vec<u8>>> {
     let rec = Recording::open(path).expect("recording opens");
@@ -916,6 +943,7 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
 #[test]
 fn golden_outputs_still_match() {
     let dir = tempfile::tempdir().expect("tempdir");
+    let pipes = format!("recording={}", pipe_sample().display());
     for graph in ["toy", "replay-toy", "odometry", "slam"] {
         let golden = repo().join(format!("recordings/golden/{graph}.mcap"));
         assert!(
@@ -924,12 +952,12 @@ fn golden_outputs_still_match() {
             golden.display()
         );
         let out = dir.path().join(format!("{graph}.mcap"));
-        let o = gprflow(&[
-            "launch",
-            &format!("graphs/{graph}.yaml"),
-            "--record",
-            out.to_str().expect("utf8"),
-        ]);
+        let graph_file = format!("graphs/{graph}.yaml");
+        let mut args = vec!["launch", &graph_file, "--record", out.to_str().expect("utf8")];
+        if graph == "slam" {
+            args.extend(["--set", &pipes]);
+        }
+        let o = gprflow(&args);
         assert!(o.status.success(), "{graph}: {}", stderr(&o));
         let d = gprflow(&["diff", golden.to_str().expect("utf8"), out.to_str().expect("utf8")]);
         assert_eq!(
@@ -1560,7 +1588,8 @@ fn register_refuses_an_oracle_without_truth_and_a_missing_model() {
 #[test]
 fn slam_detects_the_pipe_and_beats_odometry() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let sample = "recordings/sim/pipes-lawnmower-150s.mcap";
+    let sample = pipe_sample();
+    let sample = sample.to_str().expect("utf8");
     // the shipped graph, recording the traces and submaps too (for the pictures)
     let text = std::fs::read_to_string(repo().join("graphs/slam.yaml")).expect("graph");
     let text = text.replace(
@@ -1576,6 +1605,8 @@ fn slam_detects_the_pipe_and_beats_odometry() {
         graph.to_str().expect("utf8"),
         "--set",
         "spacing_m=0.25",
+        "--set",
+        &format!("recording={sample}"),
         "--record",
         slam.to_str().expect("utf8"),
     ]);
