@@ -1,15 +1,17 @@
 //! Motion on the ground: paths of straight lines and circular arcs, driven with a
-//! trapezoidal speed profile per leg (stopping at the ends of legs), turns in place, and a
-//! small roll/pitch/height wobble. Everything is analytic in time, so positions, velocities,
-//! accelerations and angular rates agree exactly — the IMU sees the derivatives of the
-//! pose that the radar and the ground truth see.
+//! trapezoidal speed profile per leg (stopping at the ends of legs), turns in place, a
+//! small roll/pitch/height wobble and (optionally) a smooth sideways wander off the planned
+//! path. Everything is analytic in time, so positions, velocities, accelerations and angular
+//! rates agree exactly — the IMU sees the derivatives of the pose that the radar and the
+//! ground truth see. Only the odometer of a wandering leg is integrated numerically (a table
+//! at 5 mm of planned path).
 
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 use nalgebra::{Rotation3, UnitQuaternion, Vector2, Vector3};
 
 use crate::rng::Rng;
-use crate::scenario::{Run, Trajectory, Vibration};
+use crate::scenario::{Run, Trajectory, Vibration, Wander};
 
 /// Standard gravity, m/s^2.
 pub const GRAVITY_MPS2: f64 = 9.80665;
@@ -90,6 +92,80 @@ struct Leg {
     reverse: bool,
     speed_mps: f64,
     accel_mps2: f64,
+    /// The sideways deviation while driving this leg, if the run wanders (boxed: most legs
+    /// have none).
+    lateral: Option<Box<Lateral>>,
+}
+
+/// Number of sinusoids in a wander field.
+const WANDER_TERMS: usize = 6;
+
+/// The largest possible deviation of a wander field, in units of its RMS (every term at
+/// its peak: `sqrt(2 * WANDER_TERMS)`).
+pub const WANDER_PEAK_PER_SIGMA: f64 = 3.464_101_615_137_754_6;
+
+/// Planned arc length between the entries of a wandering leg's odometer table, m.
+const DRIVEN_TABLE_STEP_M: f64 = 0.005;
+
+/// A smooth random function of the distance driven: a sum of sinusoids, RMS `sigma_m`.
+#[derive(Debug, Clone)]
+struct WanderField {
+    terms: [(f64, f64, f64); WANDER_TERMS], // amplitude, wavenumber (rad/m), phase
+    ramp_m: f64,
+}
+
+impl WanderField {
+    fn new(w: &Wander, rng: &mut Rng) -> Self {
+        let amplitude = w.sigma_m * (2.0 / WANDER_TERMS as f64).sqrt();
+        let mut terms = [(0.0, 0.0, 0.0); WANDER_TERMS];
+        for term in &mut terms {
+            let wavelength = w.wavelength_m * rng.range(0.5, 1.5);
+            *term = (amplitude, TAU / wavelength, rng.range(0.0, TAU));
+        }
+        Self {
+            terms,
+            ramp_m: w.ramp_m,
+        }
+    }
+
+    /// Value and first two derivatives at `d` metres driven.
+    fn eval(&self, d: f64) -> (f64, f64, f64) {
+        let mut out = (0.0, 0.0, 0.0);
+        for &(a, k, p) in &self.terms {
+            let (s, c) = (k * d + p).sin_cos();
+            out.0 += a * s;
+            out.1 += a * k * c;
+            out.2 -= a * k * k * s;
+        }
+        out
+    }
+}
+
+/// The wander over one leg: the field from where the leg starts, faded in and out, and the
+/// distance actually driven along the offset path.
+#[derive(Debug, Clone)]
+struct Lateral {
+    field: WanderField,
+    /// Distance driven (all legs, unsigned) when this leg starts, m.
+    distance_at_start_m: f64,
+    /// Distance driven along the offset path at every `DRIVEN_TABLE_STEP_M` of planned arc
+    /// length, from the leg's start.
+    driven_m: Vec<f64>,
+}
+
+/// 0 -> 1 over `ramp` after `s = 0`, 1 -> 0 over `ramp` before `s = length` (sin^2 ramps),
+/// with first and second derivatives.
+fn taper(s: f64, length: f64, ramp: f64) -> (f64, f64, f64) {
+    let c = PI / ramp;
+    if s < ramp {
+        let x = c * s;
+        (0.5 * (1.0 - x.cos()), 0.5 * c * x.sin(), 0.5 * c * c * x.cos())
+    } else if s > length - ramp {
+        let x = c * (length - s);
+        (0.5 * (1.0 - x.cos()), -0.5 * c * x.sin(), 0.5 * c * c * x.cos())
+    } else {
+        (1.0, 0.0, 0.0)
+    }
 }
 
 impl Leg {
@@ -107,7 +183,71 @@ impl Leg {
             reverse,
             speed_mps,
             accel_mps2,
+            lateral: None,
         }
+    }
+
+    /// Lets this leg wander, `distance_at_start_m` metres into the run's driving.
+    fn set_wander(&mut self, field: &WanderField, distance_at_start_m: f64) {
+        if self.length_m <= 0.0 {
+            return;
+        }
+        self.lateral = Some(Box::new(Lateral {
+            field: field.clone(),
+            distance_at_start_m,
+            driven_m: Vec::new(),
+        }));
+        let steps = (self.length_m / DRIVEN_TABLE_STEP_M).ceil() as usize;
+        let ds = self.length_m / steps as f64;
+        let rate = |s: f64| {
+            let p = self.at(s);
+            let (w, w1, _) = self.offset(s);
+            (1.0 - p.curvature_per_m * w).hypot(w1)
+        };
+        let mut driven = Vec::with_capacity(steps + 1);
+        driven.push(0.0);
+        let (mut total, mut last) = (0.0, rate(0.0));
+        for i in 1..=steps {
+            // Simpson's rule over each step
+            let s = i as f64 * ds;
+            let (mid, end) = (rate(s - 0.5 * ds), rate(s));
+            total += ds / 6.0 * (last + 4.0 * mid + end);
+            driven.push(total);
+            last = end;
+        }
+        if let Some(l) = &mut self.lateral {
+            l.driven_m = driven;
+        }
+    }
+
+    /// The sideways offset (left of the path positive) `s` metres into the leg, with its
+    /// first and second derivatives along the planned path.
+    fn offset(&self, s: f64) -> (f64, f64, f64) {
+        let Some(l) = &self.lateral else {
+            return (0.0, 0.0, 0.0);
+        };
+        let (w, w1, w2) = l.field.eval(l.distance_at_start_m + s);
+        let (g, g1, g2) = taper(s, self.length_m, l.field.ramp_m.min(0.5 * self.length_m));
+        (g * w, g1 * w + g * w1, g2 * w + 2.0 * g1 * w1 + g * w2)
+    }
+
+    /// Distance driven when `s` metres of the planned path are done, m.
+    fn driven(&self, s: f64) -> f64 {
+        match &self.lateral {
+            Some(l) if l.driven_m.len() > 1 => {
+                let steps = l.driven_m.len() - 1;
+                let x = (s / self.length_m * steps as f64).clamp(0.0, steps as f64);
+                let i = (x.floor() as usize).min(steps - 1);
+                let f = x - i as f64;
+                l.driven_m[i] + f * (l.driven_m[i + 1] - l.driven_m[i])
+            }
+            _ => s,
+        }
+    }
+
+    /// Distance driven over the whole leg, m.
+    fn driven_length(&self) -> f64 {
+        self.driven(self.length_m)
     }
 
     fn at(&self, s: f64) -> PathPoint {
@@ -222,14 +362,10 @@ pub struct Motion {
 const TURN_RATE_RADPS: f64 = 0.8;
 
 impl Motion {
-    /// Builds the motion of `run`; the wobble is drawn from `rng`.
+    /// Builds the motion of `run`; the wobble (and the wander, if the run has one) is drawn
+    /// from `rng`.
     pub fn new(run: &Run, vibration: &Vibration, rng: &mut Rng) -> Self {
-        let accel = match run.trajectory {
-            Trajectory::Highway { .. } => 1.5,
-            _ => 0.4,
-        };
-        let mut plan = Planner::default();
-        build(&run.trajectory, accel, &mut plan);
+        let plan = Planner::of(&run.trajectory);
         let (first_pos, first_heading) = plan.first.unwrap_or((V2::zeros(), 0.0));
         let mut phases = Vec::new();
         let mut t = 0.0;
@@ -257,12 +393,32 @@ impl Motion {
         ));
         t += run.end_pause_s;
         let f = vibration.frequency_hz;
+        let roll = Wobble::new(vibration.roll_deg.to_radians(), f, rng);
+        let pitch = Wobble::new(vibration.pitch_deg.to_radians(), f, rng);
+        let height = Wobble::new(vibration.height_m, f, rng);
+        if let Some(w) = run.wander.as_ref().filter(|w| w.sigma_m > 0.0) {
+            let field = WanderField::new(w, rng);
+            let (mut distance, mut odometer) = (0.0, 0.0);
+            for (_, _, phase) in &mut phases {
+                if let Phase::Drive {
+                    leg,
+                    odometer_at_start_m,
+                } = phase
+                {
+                    leg.set_wander(&field, distance);
+                    distance += leg.length_m;
+                    *odometer_at_start_m = odometer;
+                    let driven = leg.driven_length();
+                    odometer += if leg.reverse { -driven } else { driven };
+                }
+            }
+        }
         Self {
             phases,
             duration_s: t,
-            roll: Wobble::new(vibration.roll_deg.to_radians(), f, rng),
-            pitch: Wobble::new(vibration.pitch_deg.to_radians(), f, rng),
-            height: Wobble::new(vibration.height_m, f, rng),
+            roll,
+            pitch,
+            height,
         }
     }
 
@@ -301,19 +457,29 @@ impl Motion {
             } => {
                 let (s, v, a) = leg.progress(tau);
                 let p = leg.at(s);
+                let kappa = p.curvature_per_m;
                 let tangent = V2::new(p.heading_rad.cos(), p.heading_rad.sin());
                 let normal = V2::new(-tangent.y, tangent.x);
+                // the offset path p(s) + w(s) n(s) and its derivatives along the plan
+                let (w, w1, w2) = leg.offset(s);
+                let (q, r) = (1.0 - kappa * w, w1);
+                let rate = q.hypot(r); // driven distance per metre of plan
+                let dir = q * tangent + r * normal;
+                let bend = -2.0 * kappa * r * tangent + (kappa * q + w2) * normal;
+                let heading = p.heading_rad + r.atan2(q);
+                let turn_per_m = (kappa * (q * q + 2.0 * r * r) + q * w2) / (rate * rate);
+                let rate_per_m = r * (w2 - kappa * q) / rate;
                 let sign = if leg.reverse { -1.0 } else { 1.0 };
-                let yaw = wrap_angle(if leg.reverse { p.heading_rad + PI } else { p.heading_rad });
+                let yaw = wrap_angle(if leg.reverse { heading + PI } else { heading });
                 (
-                    p.position,
+                    p.position + w * normal,
                     yaw,
-                    p.curvature_per_m * v,
-                    v * tangent,
-                    a * tangent + v * v * p.curvature_per_m * normal,
-                    Some(odometer_at_start_m + sign * s),
-                    sign * v,
-                    sign * a,
+                    turn_per_m * v,
+                    v * dir,
+                    a * dir + v * v * bend,
+                    Some(odometer_at_start_m + sign * leg.driven(s)),
+                    sign * v * rate,
+                    sign * (a * rate + v * v * rate_per_m),
                 )
             }
         };
@@ -354,7 +520,14 @@ impl Motion {
                 Phase::Drive {
                     leg,
                     odometer_at_start_m,
-                } => Some(odometer_at_start_m + if leg.reverse { -leg.length_m } else { leg.length_m }),
+                } => Some(
+                    odometer_at_start_m
+                        + if leg.reverse {
+                            -leg.driven_length()
+                        } else {
+                            leg.driven_length()
+                        },
+                ),
                 _ => None,
             })
             .unwrap_or(0.0)
@@ -371,6 +544,17 @@ struct Planner {
 }
 
 impl Planner {
+    /// The phases of `trajectory`.
+    fn of(trajectory: &Trajectory) -> Self {
+        let accel = match trajectory {
+            Trajectory::Highway { .. } => 1.5,
+            _ => 0.4,
+        };
+        let mut plan = Self::default();
+        build(trajectory, accel, &mut plan);
+        plan
+    }
+
     fn drive(&mut self, pieces: Vec<Piece>, reverse: bool, speed: f64, accel: f64) {
         let Some(first) = pieces.first() else { return };
         let start = first.at(0.0);
@@ -418,6 +602,24 @@ impl Planner {
             self.phases.push((seconds, Phase::Hold { position, heading_rad }));
         }
     }
+}
+
+/// Radius of the tightest bend in `run`'s planned path, m (infinite for straight lines; turns
+/// in place are not bends).
+pub fn tightest_radius_m(run: &Run) -> f64 {
+    Planner::of(&run.trajectory)
+        .phases
+        .iter()
+        .filter_map(|(_, p)| match p {
+            Phase::Drive { leg, .. } => Some(leg),
+            _ => None,
+        })
+        .flat_map(|leg| &leg.pieces)
+        .filter_map(|piece| match piece {
+            Piece::Arc { radius_m, .. } => Some(*radius_m),
+            Piece::Line { .. } => None,
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// Wraps an angle to (-pi, pi].
@@ -795,8 +997,21 @@ mod tests {
             name: "t".into(),
             trajectory,
             soil_moisture: 0.0,
+            soil_moisture_per_min: 0.0,
             start_pause_s: 1.0,
             end_pause_s: 1.0,
+            wander: None,
+        }
+    }
+
+    fn wandering(trajectory: Trajectory, sigma_m: f64) -> Run {
+        Run {
+            wander: Some(Wander {
+                sigma_m,
+                wavelength_m: 3.0,
+                ramp_m: 1.0,
+            }),
+            ..run(trajectory)
         }
     }
 
@@ -889,6 +1104,145 @@ mod tests {
             let m = Motion::new(&run(kind.clone()), &still(), &mut Rng::new(1));
             check_derivatives(&m);
         }
+    }
+
+    /// Acceleration is the derivative of velocity, and the forward speed and acceleration
+    /// are the speed and acceleration along the body's x axis (away from the instants where
+    /// the speed profile switches).
+    fn check_accelerations(m: &Motion) {
+        let h = 1e-4;
+        let mut t = 0.011;
+        while t < m.duration_s() - 0.01 {
+            let (a, k, b) = (m.at(t - h), m.at(t), m.at(t + h));
+            if (a.accel_mps2 - b.accel_mps2).norm() < 1e-2 {
+                let acc_num = (b.velocity_mps - a.velocity_mps) / (2.0 * h);
+                assert!(
+                    (acc_num - k.accel_mps2).norm() < 1e-3,
+                    "acceleration at {t}: {acc_num} vs {}",
+                    k.accel_mps2
+                );
+                let fwd_acc = (b.forward_speed_mps - a.forward_speed_mps) / (2.0 * h);
+                assert!(
+                    (fwd_acc - k.forward_accel_mps2).abs() < 1e-3,
+                    "forward acceleration at {t}"
+                );
+            }
+            let forward = k.world_from_body * Vector3::x();
+            assert!(
+                (forward.xy().dot(&k.velocity_mps.xy()) - k.forward_speed_mps).abs() < 1e-9,
+                "forward speed at {t}"
+            );
+            assert!(
+                forward.xy().perp(&k.velocity_mps.xy()).abs() < 1e-9,
+                "sideways slip at {t}"
+            );
+            t += 0.0371;
+        }
+    }
+
+    #[test]
+    fn wandering_paths_are_smooth_and_consistent() {
+        let kinds = [
+            Trajectory::ForwardBackward {
+                start: [1.0, 2.0],
+                heading_deg: 30.0,
+                length_m: 6.0,
+                repeats: 2,
+                speed_mps: 0.5,
+                pause_s: 1.0,
+            },
+            Trajectory::Loop {
+                center: [0.0, 0.0],
+                size_m: [6.0, 4.0],
+                laps: 2,
+                speed_mps: 0.7,
+                corner_radius_m: 0.8,
+            },
+            Trajectory::Lawnmower {
+                origin: [0.0, 0.0],
+                heading_deg: 0.0,
+                length_m: 5.0,
+                rows: 3,
+                spacing_m: 1.0,
+                speed_mps: 0.5,
+            },
+        ];
+        for kind in kinds {
+            let m = Motion::new(&wandering(kind, 0.08), &still(), &mut Rng::new(1));
+            check_derivatives(&m);
+            check_accelerations(&m);
+        }
+    }
+
+    #[test]
+    fn passes_over_the_same_ground_wander_apart_and_meet_at_the_stops() {
+        let trajectory = Trajectory::ForwardBackward {
+            start: [0.0, 0.0],
+            heading_deg: 0.0,
+            length_m: 8.0,
+            repeats: 10,
+            speed_mps: 0.5,
+            pause_s: 1.0,
+        };
+        let plain = Motion::new(&run(trajectory.clone()), &still(), &mut Rng::new(1));
+        let sigma = 0.1;
+        let m = Motion::new(&wandering(trajectory, sigma), &still(), &mut Rng::new(1));
+        // where each pass crosses x = 4 (the middle, away from the fades)
+        let mut crossings = Vec::new();
+        let mut longest = f64::NEG_INFINITY;
+        let mut last = m.at(0.0);
+        let mut t = 0.0;
+        while t < m.duration_s() {
+            t += 0.01;
+            let k = m.at(t);
+            if (last.position_m.x - 4.0) * (k.position_m.x - 4.0) < 0.0 {
+                crossings.push(k.position_m.y);
+            }
+            // at rest it is where the plan is
+            if k.forward_speed_mps == 0.0 {
+                let p = plain.at(t);
+                assert!((k.position_m - p.position_m).norm() < 1e-9, "at rest at {t}");
+                assert!(wrap_angle(k.yaw_rad - p.yaw_rad).abs() < 1e-9, "heading at rest at {t}");
+            }
+            longest = longest.max(k.odometer_m);
+            last = k;
+        }
+        assert_eq!(crossings.len(), 20);
+        let rms = (crossings.iter().map(|y| y * y).sum::<f64>() / 20.0).sqrt();
+        assert!(rms > 0.4 * sigma && rms < 2.0 * sigma, "sideways RMS {rms}");
+        let spread = crossings.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b))
+            - crossings.iter().fold(f64::INFINITY, |a, &b| a.min(b));
+        assert!(spread > sigma, "passes must differ: spread {spread}");
+        // a wandering pass is longer than the planned 8 m, and the odometer knows it
+        assert!(longest > 8.0 + 1e-4, "the odometer reached only {longest}");
+        let (p_end, k_end) = (plain.at(plain.duration_s()), m.at(m.duration_s()));
+        assert!((k_end.position_m - p_end.position_m).norm() < 1e-9);
+    }
+
+    #[test]
+    fn wander_peak_constant_matches_the_term_count() {
+        assert!((WANDER_PEAK_PER_SIGMA - (2.0 * WANDER_TERMS as f64).sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn tightest_radius_is_the_smallest_corner() {
+        let r = tightest_radius_m(&run(Trajectory::Loop {
+            center: [0.0, 0.0],
+            size_m: [6.0, 4.0],
+            laps: 1,
+            speed_mps: 0.7,
+            corner_radius_m: 0.8,
+        }));
+        assert!((r - 0.8).abs() < 1e-9, "{r}");
+        let straight = tightest_radius_m(&run(Trajectory::ForwardBackward {
+            start: [0.0, 0.0],
+            heading_deg: 0.0,
+            length_m: 3.0,
+            repeats: 1,
+            speed_mps: 0.5,
+            pause_s: 1.0,
+        }));
+        assert!(straight.is_infinite());
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! recording (and optionally the CMU-GPR folder layout), plus the world's truth.
 
 use std::borrow::Cow;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -19,7 +19,7 @@ use crate::impulse::ImpulseGpr;
 use crate::lgpr::LgprArray;
 use crate::motion::{Kinematics, Motion};
 use crate::rng::Rng;
-use crate::scenario::{LineKind, PointObject, Radar, Scenario, SurfaceObject};
+use crate::scenario::{LineKind, PointObject, Radar, Run, Scenario, SurfaceObject};
 use crate::scene::AntennaPose;
 use crate::sensors::{Gps, Imu, TotalStation, WheelEncoder};
 use crate::world::World;
@@ -72,6 +72,47 @@ pub struct TruthLine {
     pub rho_m: f64,
     /// Hough angle of its normal, rad.
     pub theta_rad: f64,
+}
+
+/// Soil moisture levels closer than this share one world (0.05 % water: travel times differ
+/// by about 0.15 %).
+const MOISTURE_STEP: f64 = 0.0005;
+
+/// The subsurface as the radar sees it at each moment of a run: one world while the soil
+/// moisture is constant, one per moisture level (`MOISTURE_STEP`) while it dries or wets.
+struct Ground<'a> {
+    decl: &'a crate::scenario::World,
+    seed: u64,
+    moisture: f64,
+    per_s: f64,
+    worlds: HashMap<i64, World>,
+}
+
+impl<'a> Ground<'a> {
+    fn new(decl: &'a crate::scenario::World, seed: u64, run: &Run) -> Self {
+        Self {
+            decl,
+            seed,
+            moisture: run.soil_moisture,
+            per_s: run.soil_moisture_per_min / 60.0,
+            worlds: HashMap::new(),
+        }
+    }
+
+    /// The world `t_s` seconds into the run.
+    fn at(&mut self, t_s: f64) -> &mut World {
+        let (key, moisture) = if self.per_s == 0.0 {
+            (0, self.moisture)
+        } else {
+            let m = (self.moisture + self.per_s * t_s).clamp(0.0, 0.5);
+            let key = (m / MOISTURE_STEP).round() as i64;
+            (key, key as f64 * MOISTURE_STEP)
+        };
+        let (decl, seed) = (self.decl, self.seed);
+        self.worlds
+            .entry(key)
+            .or_insert_with(|| World::new(decl, seed, moisture))
+    }
 }
 
 /// The world's truth, attached to the recording as `world.json`.
@@ -273,7 +314,7 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     let duration_s = opts
         .max_duration_s
         .map_or(motion.duration_s(), |d| d.min(motion.duration_s()));
-    let mut world = World::new(&scenario.world, seed, run.soil_moisture);
+    let mut ground = Ground::new(&scenario.world, seed, run);
     let start_ns = scenario.start_time_ns;
     let end_ns = start_ns + (duration_s * 1e9).round() as i64;
 
@@ -285,6 +326,12 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     fields.insert("run".to_owned(), run.name.clone());
     fields.insert("seed".to_owned(), seed.to_string());
     fields.insert("soil_moisture".to_owned(), run.soil_moisture.to_string());
+    if run.soil_moisture_per_min != 0.0 {
+        fields.insert(
+            "soil_moisture_per_min".to_owned(),
+            run.soil_moisture_per_min.to_string(),
+        );
+    }
     fields.insert("duration_s".to_owned(), duration_s.to_string());
     rec.write_metadata("gprflow.sim", fields)?;
     if !opts.scenario_text.is_empty() {
@@ -296,7 +343,7 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
         run: run.name.clone(),
         seed,
         soil_moisture: run.soil_moisture,
-        points: world.points.clone(),
+        points: ground.at(0.0).points.clone(),
         lines: lines.clone(),
         clutter: scenario.world.clutter.clone(),
     };
@@ -506,7 +553,7 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
                         height_m: cfg.antenna_height_m + p.z.max(-cfg.antenna_height_m),
                         yaw_rad: k.yaw_rad,
                     };
-                    let samples = gpr.trace(&mut world, pose, dt_s);
+                    let samples = gpr.trace(ground.at(t_s), pose, dt_s);
                     if let Some(c) = cmu.as_mut() {
                         let mut line = seconds(stamp);
                         for s in &samples {
@@ -529,7 +576,7 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
                     rec.write(ch.radar, seq, stamp, &msg::encode(&m))?;
                     count(topics::TRACE);
                 } else if let Some((a, cfg)) = array.as_mut() {
-                    let (values, calibration) = a.sweep(&mut world, &k, t_s);
+                    let (values, calibration) = a.sweep(ground.at(t_s), &k, t_s);
                     let m = Sweep {
                         header: Header::new(stamp, "lgpr"),
                         domain: Sweep::DOMAIN_FREQUENCY,

@@ -66,16 +66,44 @@ pub struct Run {
     /// and more lossy (seed 001 §4.3).
     #[serde(default)]
     pub soil_moisture: f64,
+    /// Change of `soil_moisture` per minute during the run (negative: drying after rain),
+    /// so passes over the same ground see it wetter or drier. Held within [0, 0.5].
+    #[serde(default)]
+    pub soil_moisture_per_min: f64,
     /// Stand still this long before moving (lets an estimator initialise), s.
     #[serde(default = "default_pause")]
     pub start_pause_s: f64,
     /// Stand still this long after the last motion, s.
     #[serde(default = "default_pause")]
     pub end_pause_s: f64,
+    /// A rig pulled or steered by hand does not retrace its planned path: a smooth sideways
+    /// deviation from it, different on every pass over the same ground. None = the path as
+    /// planned.
+    #[serde(default)]
+    pub wander: Option<Wander>,
 }
 
 fn default_pause() -> f64 {
     2.0
+}
+
+/// Sideways deviation from the planned path, a smooth random function of the distance
+/// driven (so two passes over the same ground deviate differently). It fades to zero over
+/// `ramp_m` at every start and stop, where the plan turns or reverses.
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Wander {
+    /// RMS of the sideways deviation, m.
+    pub sigma_m: f64,
+    /// Typical wavelength of the deviation along the path, m.
+    pub wavelength_m: f64,
+    /// Length over which the deviation fades in after a start and out before a stop, m.
+    #[serde(default = "default_wander_ramp")]
+    pub ramp_m: f64,
+}
+
+fn default_wander_ramp() -> f64 {
+    1.0
 }
 
 /// The subsurface.
@@ -837,9 +865,33 @@ impl Scenario {
             if run.soil_moisture > 0.5 {
                 return Err((format!("runs.{i}.soil_moisture"), "at most 0.5".into()));
             }
+            if !run.soil_moisture_per_min.is_finite() || run.soil_moisture_per_min.abs() > 0.1 {
+                return Err((
+                    format!("runs.{i}.soil_moisture_per_min"),
+                    format!("must be finite and within +-0.1, got {}", run.soil_moisture_per_min),
+                ));
+            }
             non_negative(&format!("runs.{i}.start_pause_s"), run.start_pause_s)?;
             non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
             crate::motion::validate(&run.trajectory).map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
+            if let Some(w) = &run.wander {
+                let key = |f: &str| format!("runs.{i}.wander.{f}");
+                non_negative(&key("sigma_m"), w.sigma_m)?;
+                positive(&key("wavelength_m"), w.wavelength_m)?;
+                positive(&key("ramp_m"), w.ramp_m)?;
+                // the offset path must not fold over itself on the tightest bend
+                let reach = crate::motion::WANDER_PEAK_PER_SIGMA * w.sigma_m;
+                let radius = crate::motion::tightest_radius_m(run);
+                if reach >= 0.5 * radius {
+                    return Err((
+                        key("sigma_m"),
+                        format!(
+                            "too large for the tightest bend of the path ({radius:.2} m radius): the deviation reaches \
+                             {reach:.2} m, at most half the radius is allowed"
+                        ),
+                    ));
+                }
+            }
         }
         Ok(())
     }

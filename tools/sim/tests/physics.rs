@@ -481,3 +481,133 @@ fn wetter_soil_stretches_travel_times() {
     );
     assert!(wet.1 < dry.1, "wetter soil attenuates more");
 }
+
+/// Zero-lag correlation of two radargrams on the same grid, the mean trace of each removed,
+/// below the direct wave.
+fn radargram_correlation(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
+    let mean = |g: &[Vec<f64>]| -> Vec<f64> {
+        let valid: Vec<&Vec<f64>> = g.iter().filter(|c| !c.is_empty()).collect();
+        (0..valid[0].len())
+            .map(|k| valid.iter().map(|c| c[k]).sum::<f64>() / valid.len() as f64)
+            .collect()
+    };
+    let (ma, mb) = (mean(a), mean(b));
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (ca, cb) in a.iter().zip(b) {
+        if ca.is_empty() || cb.is_empty() {
+            continue;
+        }
+        for k in 40..ca.len() {
+            let (x, y) = (ca[k] - ma[k], cb[k] - mb[k]);
+            ab += x * y;
+            aa += x * x;
+            bb += y * y;
+        }
+    }
+    ab / (aa * bb).sqrt()
+}
+
+#[test]
+fn a_wandering_rig_sees_the_same_ground_less_alike() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = format!(
+        "{TEXTURED}  - name: again\n    start_pause_s: 0.5\n    end_pause_s: 0.5\n    trajectory: {{ kind: long_drive, start: [0, 0], heading_deg: 0, length_m: 8, speed_mps: 0.5 }}\n  - name: wander\n    start_pause_s: 0.5\n    end_pause_s: 0.5\n    wander: {{ sigma_m: 0.1, wavelength_m: 3 }}\n    trajectory: {{ kind: long_drive, start: [0, 0], heading_deg: 0, length_m: 8, speed_mps: 0.5 }}\n"
+    );
+    let scenario = write_scenario(dir.path(), "wander.yaml", &text);
+    let mut grams = Vec::new();
+    for run in ["a", "again", "wander"] {
+        let output = dir.path().join(format!("{run}.mcap"));
+        let opts = SimOptions {
+            run: Some(run.into()),
+            output: output.clone(),
+            ..SimOptions::default()
+        };
+        simulate(&scenario, &opts, &mut |_| {}).expect("simulate");
+        // the middle 6 m, where the wander has faded in
+        grams.push(radargram_by_position(&output, 1.0, 600));
+    }
+    let same = radargram_correlation(&grams[0], &grams[1]);
+    let wandered = radargram_correlation(&grams[0], &grams[2]);
+    assert!(same > 0.9, "the same path twice: correlation {same:.3}");
+    assert!(
+        wandered < same - WANDER_DECORRELATION,
+        "10 cm of wander must change what the radar sees: {wandered:.3} against {same:.3}"
+    );
+    assert!(wandered > 0.2, "but it is still the same ground: {wandered:.3}");
+}
+
+/// How much less alike (correlation) two passes over textured ground are at 10 cm RMS of
+/// sideways wander than on the same path.
+const WANDER_DECORRELATION: f64 = 0.2;
+
+#[test]
+fn drying_soil_moves_the_echoes_of_later_passes_earlier() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = r#"
+name: drying
+seed: 5
+world:
+  layers:
+    - { top_depth_m: 0.0, eps_r: 6.0, attenuation_db_per_m: 2.0 }
+  points:
+    - { at: [3.0, 0.0], depth_m: 0.6, radius_m: 0.05, kind: void }
+radar: { kind: impulse, samples: 301, noise_counts: 0.0, wow_counts: 0.0, dc_offset_counts: 0.0, dc_walk_counts: 0.0, time_zero_jitter_ns: 0.0, direct_coupling_counts: 0.0, antenna_height_m: 0.0, mount_m: [0.0, 0.0], ringing: { first: 0.0 } }
+vibration: { roll_deg: 0.0, pitch_deg: 0.0, height_m: 0.0 }
+runs:
+  - name: drying
+    soil_moisture: 0.1
+    soil_moisture_per_min: -0.05
+    trajectory: { kind: forward_backward, start: [0, 0], heading_deg: 0, length_m: 6, repeats: 2, speed_mps: 0.5 }
+"#;
+    let scenario = write_scenario(dir.path(), "drying.yaml", text);
+    let output = dir.path().join("drying.mcap");
+    let opts = SimOptions {
+        output: output.clone(),
+        ..SimOptions::default()
+    };
+    simulate(&scenario, &opts, &mut |_| {}).expect("simulate");
+    // the trace nearest above the void on each of the four passes
+    let rec = Recording::open(&output).expect("open");
+    let mut poses: Vec<(i64, f64)> = Vec::new();
+    let mut traces: Vec<(i64, Vec<f64>)> = Vec::new();
+    rec.scan(|m| {
+        if m.topic == format!("/{}", topics::TRUTH_POSE) {
+            let p: PoseStamped = msg::decode(m.data).expect("pose");
+            poses.push((m.log_time as i64, p.pose.position.x));
+        } else if m.topic == format!("/{}", topics::TRACE) {
+            let t: Trace = msg::decode(m.data).expect("trace");
+            traces.push((m.log_time as i64, t.samples_i16.iter().map(|&s| f64::from(s)).collect()));
+        }
+    });
+    let x_at = |stamp: i64| poses[poses.partition_point(|(s, _)| *s <= stamp).clamp(1, poses.len()) - 1].1;
+    let start = poses[0].0;
+    let mut passes: Vec<(f64, Vec<f64>)> = Vec::new(); // (time into the run, trace)
+    let mut last_x = x_at(traces[0].0);
+    for (stamp, samples) in &traces {
+        let x = x_at(*stamp);
+        if (last_x - 3.0) * (x - 3.0) <= 0.0 && last_x != x {
+            passes.push(((stamp - start) as f64 * 1e-9, samples.clone()));
+        }
+        last_x = x;
+    }
+    assert_eq!(passes.len(), 4, "four passes over the void");
+    let cfg = &scenario.radar;
+    let gprflow_sim::scenario::Radar::Impulse(cfg) = cfg else {
+        panic!("impulse radar")
+    };
+    let mut last = f64::INFINITY;
+    for (t, samples) in &passes {
+        let (delay, _) = pick(samples, cfg.sample_interval_ns, cfg.time_zero_sample);
+        let moisture = 0.1 - 0.05 * t / 60.0;
+        // the echo comes from the top of the void
+        let expected = World::new(&scenario.world, scenario.seed, moisture)
+            .column(3.0, 0.0, 0.55)
+            .t0_ns;
+        assert!(
+            (delay - expected).abs() < 4.0 * DELAY_TOLERANCE_NS,
+            "echo at {delay:.3} ns after {t:.1} s, expected {expected:.3} ns (moisture {moisture:.4})"
+        );
+        assert!(delay < last, "each later pass sees drier, faster soil");
+        last = delay;
+    }
+}
