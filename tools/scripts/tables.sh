@@ -11,23 +11,42 @@
 #
 #   tools/scripts/tables.sh            # about 15 minutes on 2 cores
 #   tools/scripts/tables.sh --no-readme  # print only
+#   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
+#                                      # off its path, the soil dries): out/tables-by-hand,
+#                                      # README markers tables-by-hand:begin / :end
 #   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
+#   GPRFLOW=target/debug/gprflow tools/scripts/tables.sh   # with the test build
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 write_readme=1
-[[ "${1:-}" == "--no-readme" ]] && write_readme=0
+by_hand=0
+for arg in "$@"; do
+    case $arg in
+        --no-readme) write_readme=0 ;;
+        --by-hand) by_hand=1 ;;
+        *) echo "tables.sh: unknown argument $arg" >&2; exit 2 ;;
+    esac
+done
 tools/scripts/ensure-onnxruntime.sh > /dev/null
-cargo build --release -p gprflow-cli
-g=./target/release/gprflow
+# GPRFLOW=target/debug/gprflow uses a build already there instead of the release one
+if [[ -z "${GPRFLOW:-}" ]]; then
+    cargo build --release -p gprflow-cli
+fi
+g=${GPRFLOW:-./target/release/gprflow}
 out=out/tables
-mkdir -p "$out"
-
+marker=tables
 # environment name, scenario, run
 worlds=(
     "basement tools/sim/scenarios/basement.yaml forward_backward"
     "factory_floor tools/sim/scenarios/factory_floor.yaml forward_backward"
     "parking_garage tools/sim/scenarios/parking_garage.yaml loops"
 )
+if [[ $by_hand == 1 ]]; then
+    out=out/tables-by-hand
+    marker=tables-by-hand
+    for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
+fi
+mkdir -p "$out"
 models=(engineered zeroth learned nonlinear oracle)
 
 for w in "${worlds[@]}"; do
@@ -53,9 +72,9 @@ for w in "${worlds[@]}"; do
     done
 done
 
-python3 - "$out" "$write_readme" <<'EOF'
+python3 - "$out" "$write_readme" "$marker" <<'EOF'
 import json, math, pathlib, re, sys
-out, write = pathlib.Path(sys.argv[1]), sys.argv[2] == "1"
+out, write, marker = pathlib.Path(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
 worlds = ["basement", "factory_floor", "parking_garage"]
 models = ["engineered", "zeroth", "learned", "nonlinear", "oracle"]
 def load(w, m):
@@ -85,9 +104,9 @@ print(table)
 if write:
     readme = pathlib.Path("README.md")
     text = readme.read_text()
-    begin, end = "<!-- tables:begin -->", "<!-- tables:end -->"
+    begin, end = f"<!-- {marker}:begin -->", f"<!-- {marker}:end -->"
     if begin not in text:
-        sys.exit("README.md has no tables:begin marker")
+        sys.exit(f"README.md has no {marker}:begin marker")
     text = re.sub(re.escape(begin) + ".*?" + re.escape(end), begin + "\n" + table + "\n" + end, text, flags=re.S)
     readme.write_text(text)
     print("README.md updated", file=sys.stderr)
