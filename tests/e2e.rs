@@ -940,33 +940,87 @@ fn diff_passes_identical_runs_and_names_the_first_divergence() {
     assert!(stderr(&o).contains("s.yaml"), "{}", stderr(&o));
 }
 
+/// Reruns `graph` (with `sets`) and diffs its recording against
+/// `recordings/golden/{graph}.mcap`.
+fn assert_reproduces_golden(graph: &str, sets: &[String]) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let golden = repo().join(format!("recordings/golden/{graph}.mcap"));
+    assert!(
+        golden.exists(),
+        "{} missing: tools/scripts/update-goldens.sh",
+        golden.display()
+    );
+    let out = dir.path().join(format!("{graph}.mcap"));
+    let graph_file = format!("graphs/{graph}.yaml");
+    let mut args = vec!["launch", &graph_file, "--record", out.to_str().expect("utf8")];
+    for set in sets {
+        args.extend(["--set", set]);
+    }
+    let o = gprflow(&args);
+    assert!(o.status.success(), "{graph}: {}", stderr(&o));
+    let d = gprflow(&["diff", golden.to_str().expect("utf8"), out.to_str().expect("utf8")]);
+    assert_eq!(
+        d.status.code(),
+        Some(0),
+        "{graph} no longer reproduces its golden (if intended: tools/scripts/update-goldens.sh):\n{}",
+        String::from_utf8_lossy(&d.stdout)
+    );
+}
+
+/// A short simulated input for a golden, made on demand like [`pipe_sample`]; `args` as
+/// `tools/scripts/update-goldens.sh` gives them (keep the two alike).
+fn golden_input(name: &str, args: &[&str]) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("samples");
+    let path = dir.join(name);
+    if !path.exists() {
+        std::fs::create_dir_all(&dir).expect("samples dir");
+        let partial = dir.join(format!("{name}.{}", std::process::id()));
+        let mut all = vec!["sim"];
+        all.extend(args);
+        all.extend(["-o", partial.to_str().expect("utf8")]);
+        let o = gprflow(&all);
+        assert!(o.status.success(), "{}", stderr(&o));
+        std::fs::rename(&partial, &path).expect("input in place");
+    }
+    path
+}
+
 #[test]
 fn golden_outputs_still_match() {
-    let dir = tempfile::tempdir().expect("tempdir");
     let pipes = format!("recording={}", pipe_sample().display());
-    for graph in ["toy", "replay-toy", "odometry", "slam"] {
-        let golden = repo().join(format!("recordings/golden/{graph}.mcap"));
-        assert!(
-            golden.exists(),
-            "{} missing: tools/scripts/update-goldens.sh",
-            golden.display()
-        );
-        let out = dir.path().join(format!("{graph}.mcap"));
-        let graph_file = format!("graphs/{graph}.yaml");
-        let mut args = vec!["launch", &graph_file, "--record", out.to_str().expect("utf8")];
-        if graph == "slam" {
-            args.extend(["--set", &pipes]);
-        }
-        let o = gprflow(&args);
-        assert!(o.status.success(), "{graph}: {}", stderr(&o));
-        let d = gprflow(&["diff", golden.to_str().expect("utf8"), out.to_str().expect("utf8")]);
-        assert_eq!(
-            d.status.code(),
-            Some(0),
-            "{graph} no longer reproduces its golden (if intended: tools/scripts/update-goldens.sh):\n{}",
-            String::from_utf8_lossy(&d.stdout)
-        );
+    for graph in ["toy", "replay-toy", "odometry"] {
+        assert_reproduces_golden(graph, &[]);
     }
+    assert_reproduces_golden("slam", &[pipes]);
+}
+
+#[test]
+fn golden_localisation_still_matches() {
+    assert_reproduces_golden("localize", &[]);
+}
+
+#[test]
+fn golden_submaps_and_sweeps_still_match() {
+    // short inputs and sparse submaps keep these goldens small (floats compress poorly)
+    let garage = golden_input(
+        "garage-loops-20s.mcap",
+        &[
+            "tools/sim/scenarios/parking_garage.yaml",
+            "--run",
+            "loops",
+            "--duration",
+            "20",
+        ],
+    );
+    assert_reproduces_golden(
+        "submaps",
+        &[format!("recording={}", garage.display()), "spacing_m=1.0".into()],
+    );
+    let highway = golden_input(
+        "highway-map-1s.mcap",
+        &["tools/sim/scenarios/highway.yaml", "--run", "map", "--duration", "1"],
+    );
+    assert_reproduces_golden("lgpr-sweeps", &[format!("recording={}", highway.display())]);
 }
 
 #[test]

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates the golden outputs of the shipped graphs (recordings/golden/GRAPH.mcap) on
 # purpose, showing with `gprflow diff` what changed against the previous golden first.
-# The test `golden_outputs_still_match` (tests/e2e.rs) reruns each graph and diffs it
+# The golden tests (tests/e2e.rs, `golden_*`) rerun each graph and diff it
 # against its golden; run this script when a change of output is intended, and commit the
 # new goldens with the change that caused them.
 #   tools/scripts/update-goldens.sh
@@ -11,12 +11,18 @@ cargo build -p gprflow-cli
 bin=target/debug/gprflow
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-# the pipe-field sample of graphs/slam.yaml is made on demand (tools/sim/make-samples.sh)
+# inputs made on demand (as tests/e2e.rs makes them: keep the two alike)
 "$bin" sim tools/sim/scenarios/pipes_one_line.yaml --run lawnmower --duration 150 -o "$tmp/pipes.mcap"
-for graph in toy replay-toy odometry slam; do
-    set_recording=()
-    [[ $graph == slam ]] && set_recording=(--set "recording=$tmp/pipes.mcap")
-    "$bin" launch "graphs/$graph.yaml" "${set_recording[@]}" --record "$tmp/$graph.mcap"
+"$bin" sim tools/sim/scenarios/parking_garage.yaml --run loops --duration 20 -o "$tmp/garage.mcap"
+"$bin" sim tools/sim/scenarios/highway.yaml --run map --duration 1 -o "$tmp/highway.mcap"
+for graph in toy replay-toy odometry slam localize submaps lgpr-sweeps; do
+    sets=()
+    case $graph in
+        slam) sets=(--set "recording=$tmp/pipes.mcap") ;;
+        submaps) sets=(--set "recording=$tmp/garage.mcap" --set spacing_m=1.0) ;;
+        lgpr-sweeps) sets=(--set "recording=$tmp/highway.mcap") ;;
+    esac
+    "$bin" launch "graphs/$graph.yaml" "${sets[@]}" --record "$tmp/$graph.mcap"
     golden="recordings/golden/$graph.mcap"
     if [[ -f "$golden" ]]; then
         echo "== $graph: changes against the previous golden"
