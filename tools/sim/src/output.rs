@@ -2,7 +2,7 @@
 //! recording (and optionally the CMU-GPR folder layout), plus the world's truth.
 
 use std::borrow::Cow;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -79,13 +79,14 @@ pub struct TruthLine {
 const MOISTURE_STEP: f64 = 0.0005;
 
 /// The subsurface as the radar sees it at each moment of a run: one world while the soil
-/// moisture is constant, one per moisture level (`MOISTURE_STEP`) while it dries or wets.
+/// moisture is constant; while it dries or wets, the world of the current moisture level
+/// (`MOISTURE_STEP`), made anew when the level changes (moisture only goes one way in a run).
 struct Ground<'a> {
     decl: &'a crate::scenario::World,
     seed: u64,
     moisture: f64,
     per_s: f64,
-    worlds: HashMap<i64, World>,
+    current: Option<(i64, World)>,
 }
 
 impl<'a> Ground<'a> {
@@ -95,7 +96,7 @@ impl<'a> Ground<'a> {
             seed,
             moisture: run.soil_moisture,
             per_s: run.soil_moisture_per_min / 60.0,
-            worlds: HashMap::new(),
+            current: None,
         }
     }
 
@@ -108,10 +109,14 @@ impl<'a> Ground<'a> {
             let key = (m / MOISTURE_STEP).round() as i64;
             (key, key as f64 * MOISTURE_STEP)
         };
+        if self.current.as_ref().is_some_and(|(k, _)| *k != key) {
+            self.current = None;
+        }
         let (decl, seed) = (self.decl, self.seed);
-        self.worlds
-            .entry(key)
-            .or_insert_with(|| World::new(decl, seed, moisture))
+        &mut self
+            .current
+            .get_or_insert_with(|| (key, World::new(decl, seed, moisture)))
+            .1
     }
 }
 
