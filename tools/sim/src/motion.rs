@@ -130,15 +130,21 @@ impl WanderField {
 
     /// Value and first two derivatives at `d` metres driven.
     fn eval(&self, d: f64) -> (f64, f64, f64) {
-        let mut out = (0.0, 0.0, 0.0);
-        for &(a, k, p) in &self.terms {
-            let (s, c) = (k * d + p).sin_cos();
-            out.0 += a * s;
-            out.1 += a * k * c;
-            out.2 -= a * k * k * s;
-        }
-        out
+        sum_of_sines(&self.terms, d)
     }
+}
+
+/// `sum a sin(w x + p)` over `terms` (amplitude, angular frequency, phase), with its first
+/// and second derivatives in `x`.
+fn sum_of_sines(terms: &[(f64, f64, f64)], x: f64) -> (f64, f64, f64) {
+    let mut out = (0.0, 0.0, 0.0);
+    for &(a, w, p) in terms {
+        let (s, c) = (w * x + p).sin_cos();
+        out.0 += a * s;
+        out.1 += a * w * c;
+        out.2 -= a * w * w * s;
+    }
+    out
 }
 
 /// The wander over one leg: the field from where the leg starts, faded in and out, and the
@@ -338,14 +344,7 @@ impl Wobble {
     }
 
     fn eval(&self, t: f64) -> (f64, f64, f64) {
-        let mut out = (0.0, 0.0, 0.0);
-        for &(a, w, p) in &self.terms {
-            let (s, c) = (w * t + p).sin_cos();
-            out.0 += a * s;
-            out.1 += a * w * c;
-            out.2 -= a * w * w * s;
-        }
-        out
+        sum_of_sines(&self.terms, t)
     }
 }
 
