@@ -31,30 +31,36 @@ fn stderr(o: &Output) -> String {
 
 /// The pipe-field sample that `graphs/slam.yaml` reads (`recording`), made on demand as
 /// `tools/sim/make-samples.sh` makes it (the simulator is deterministic; too big to commit).
-/// Tests running at once each write their own copy and move it into place.
 fn pipe_sample() -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("samples");
-    let path = dir.join(PIPE_SAMPLE_NAME);
-    if !path.exists() {
-        std::fs::create_dir_all(&dir).expect("samples dir");
-        let partial = dir.join(format!("{PIPE_SAMPLE_NAME}.{}", std::process::id()));
-        let o = gprflow(&[
-            "sim",
+    simulated(
+        "pipes-lawnmower-150s.mcap",
+        &[
             "tools/sim/scenarios/pipes_one_line.yaml",
             "--run",
             "lawnmower",
             "--duration",
             "150",
-            "-o",
-            partial.to_str().expect("utf8"),
-        ]);
+        ],
+    )
+}
+
+/// `gprflow sim ARGS` into target/tmp/samples/NAME, once: tests running at once each write
+/// their own copy and move it into place.
+fn simulated(name: &str, args: &[&str]) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("samples");
+    let path = dir.join(name);
+    if !path.exists() {
+        std::fs::create_dir_all(&dir).expect("samples dir");
+        let partial = dir.join(format!("{name}.{}", std::process::id()));
+        let mut all = vec!["sim"];
+        all.extend(args);
+        all.extend(["-o", partial.to_str().expect("utf8")]);
+        let o = gprflow(&all);
         assert!(o.status.success(), "{}", stderr(&o));
         std::fs::rename(&partial, &path).expect("sample in place");
     }
     path
 }
-
-const PIPE_SAMPLE_NAME: &str = "pipes-lawnmower-150s.mcap";
 
 /// Payloads per topic, in file order.
 fn payloads(path: &Path) -> BTreeMap<String, Vec<Vec<u8>>> {
@@ -967,24 +973,6 @@ fn assert_reproduces_golden(graph: &str, sets: &[String]) {
     );
 }
 
-/// A short simulated input for a golden, made on demand like [`pipe_sample`]; `args` as
-/// `tools/scripts/update-goldens.sh` gives them (keep the two alike).
-fn golden_input(name: &str, args: &[&str]) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("samples");
-    let path = dir.join(name);
-    if !path.exists() {
-        std::fs::create_dir_all(&dir).expect("samples dir");
-        let partial = dir.join(format!("{name}.{}", std::process::id()));
-        let mut all = vec!["sim"];
-        all.extend(args);
-        all.extend(["-o", partial.to_str().expect("utf8")]);
-        let o = gprflow(&all);
-        assert!(o.status.success(), "{}", stderr(&o));
-        std::fs::rename(&partial, &path).expect("input in place");
-    }
-    path
-}
-
 #[test]
 fn golden_outputs_still_match() {
     let pipes = format!("recording={}", pipe_sample().display());
@@ -1001,8 +989,9 @@ fn golden_localisation_still_matches() {
 
 #[test]
 fn golden_submaps_and_sweeps_still_match() {
-    // short inputs and sparse submaps keep these goldens small (floats compress poorly)
-    let garage = golden_input(
+    // short inputs and sparse submaps keep these goldens small (floats compress poorly);
+    // made as tools/scripts/update-goldens.sh makes them (keep the two alike)
+    let garage = simulated(
         "garage-loops-20s.mcap",
         &[
             "tools/sim/scenarios/parking_garage.yaml",
@@ -1016,7 +1005,7 @@ fn golden_submaps_and_sweeps_still_match() {
         "submaps",
         &[format!("recording={}", garage.display()), "spacing_m=1.0".into()],
     );
-    let highway = golden_input(
+    let highway = simulated(
         "highway-map-1s.mcap",
         &["tools/sim/scenarios/highway.yaml", "--run", "map", "--duration", "1"],
     );
