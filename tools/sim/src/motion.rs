@@ -1052,9 +1052,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn every_kind_is_smooth_and_consistent() {
-        let kinds = [
+    /// One trajectory of every kind but the highway (its own test has one).
+    fn one_of_each_kind() -> Vec<Trajectory> {
+        vec![
             Trajectory::Waypoints {
                 points: vec![[0.0, 0.0], [5.0, 0.0], [5.0, 4.0], [0.0, 6.0]],
                 speed_mps: 0.6,
@@ -1098,9 +1098,13 @@ mod tests {
                 meander_wavelength_m: 12.0,
                 speed_mps: 1.0,
             },
-        ];
-        for kind in kinds {
-            let m = Motion::new(&run(kind.clone()), &still(), &mut Rng::new(1));
+        ]
+    }
+
+    #[test]
+    fn every_kind_is_smooth_and_consistent() {
+        for kind in one_of_each_kind() {
+            let m = Motion::new(&run(kind), &still(), &mut Rng::new(1));
             check_derivatives(&m);
         }
     }
@@ -1141,32 +1145,7 @@ mod tests {
 
     #[test]
     fn wandering_paths_are_smooth_and_consistent() {
-        let kinds = [
-            Trajectory::ForwardBackward {
-                start: [1.0, 2.0],
-                heading_deg: 30.0,
-                length_m: 6.0,
-                repeats: 2,
-                speed_mps: 0.5,
-                pause_s: 1.0,
-            },
-            Trajectory::Loop {
-                center: [0.0, 0.0],
-                size_m: [6.0, 4.0],
-                laps: 2,
-                speed_mps: 0.7,
-                corner_radius_m: 0.8,
-            },
-            Trajectory::Lawnmower {
-                origin: [0.0, 0.0],
-                heading_deg: 0.0,
-                length_m: 5.0,
-                rows: 3,
-                spacing_m: 1.0,
-                speed_mps: 0.5,
-            },
-        ];
-        for kind in kinds {
+        for kind in one_of_each_kind() {
             let m = Motion::new(&wandering(kind, 0.08), &still(), &mut Rng::new(1));
             check_derivatives(&m);
             check_accelerations(&m);

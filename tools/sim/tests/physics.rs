@@ -156,8 +156,11 @@ runs:
     trajectory: { kind: long_drive, start: [1, 0], heading_deg: 0, length_m: 8, speed_mps: 0.5 }
 "#;
 
-/// Traces of a recording resampled onto a 1 cm grid of truth x from `x0`.
-fn radargram_by_position(path: &Path, x0: f64, columns: usize) -> Vec<Vec<f64>> {
+/// (log time, truth x) of every pose and (log time, samples) of every trace.
+type TruthXAndTraces = (Vec<(i64, f64)>, Vec<(i64, Vec<f64>)>);
+
+/// A recording's truth x positions and its traces, each with its log time.
+fn truth_x_and_traces(path: &Path) -> TruthXAndTraces {
     let rec = Recording::open(path).expect("open");
     let mut poses: Vec<(i64, f64)> = Vec::new();
     let mut traces: Vec<(i64, Vec<f64>)> = Vec::new();
@@ -170,6 +173,20 @@ fn radargram_by_position(path: &Path, x0: f64, columns: usize) -> Vec<Vec<f64>> 
             traces.push((m.log_time as i64, t.samples_i16.iter().map(|&s| f64::from(s)).collect()));
         }
     });
+    (poses, traces)
+}
+
+/// The mean of a radargram's non-empty columns.
+fn mean_trace(g: &[Vec<f64>]) -> Vec<f64> {
+    let valid: Vec<&Vec<f64>> = g.iter().filter(|c| !c.is_empty()).collect();
+    (0..valid[0].len())
+        .map(|k| valid.iter().map(|c| c[k]).sum::<f64>() / valid.len() as f64)
+        .collect()
+}
+
+/// Traces of a recording resampled onto a 1 cm grid of truth x from `x0`.
+fn radargram_by_position(path: &Path, x0: f64, columns: usize) -> Vec<Vec<f64>> {
+    let (poses, traces) = truth_x_and_traces(path);
     let x_at = |stamp: i64| {
         let i = poses.partition_point(|(s, _)| *s <= stamp).clamp(1, poses.len() - 1);
         let ((s0, x0), (s1, x1)) = (poses[i - 1], poses[i]);
@@ -213,11 +230,7 @@ fn moving_one_metre_along_track_shifts_the_radargram_by_one_metre() {
     let b = radargram_by_position(&dir.path().join("b.mcap"), 1.0, 700);
     // mean trace removed, below the direct wave
     let demean = |g: &[Vec<f64>]| -> Vec<Vec<f64>> {
-        let valid: Vec<&Vec<f64>> = g.iter().filter(|c| !c.is_empty()).collect();
-        let n = valid[0].len();
-        let mean: Vec<f64> = (0..n)
-            .map(|k| valid.iter().map(|c| c[k]).sum::<f64>() / valid.len() as f64)
-            .collect();
+        let mean = mean_trace(g);
         g.iter()
             .map(|c| {
                 if c.is_empty() {
@@ -485,13 +498,7 @@ fn wetter_soil_stretches_travel_times() {
 /// Zero-lag correlation of two radargrams on the same grid, the mean trace of each removed,
 /// below the direct wave.
 fn radargram_correlation(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
-    let mean = |g: &[Vec<f64>]| -> Vec<f64> {
-        let valid: Vec<&Vec<f64>> = g.iter().filter(|c| !c.is_empty()).collect();
-        (0..valid[0].len())
-            .map(|k| valid.iter().map(|c| c[k]).sum::<f64>() / valid.len() as f64)
-            .collect()
-    };
-    let (ma, mb) = (mean(a), mean(b));
+    let (ma, mb) = (mean_trace(a), mean_trace(b));
     let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
     for (ca, cb) in a.iter().zip(b) {
         if ca.is_empty() || cb.is_empty() {
@@ -567,18 +574,7 @@ runs:
     };
     simulate(&scenario, &opts, &mut |_| {}).expect("simulate");
     // the trace nearest above the void on each of the four passes
-    let rec = Recording::open(&output).expect("open");
-    let mut poses: Vec<(i64, f64)> = Vec::new();
-    let mut traces: Vec<(i64, Vec<f64>)> = Vec::new();
-    rec.scan(|m| {
-        if m.topic == format!("/{}", topics::TRUTH_POSE) {
-            let p: PoseStamped = msg::decode(m.data).expect("pose");
-            poses.push((m.log_time as i64, p.pose.position.x));
-        } else if m.topic == format!("/{}", topics::TRACE) {
-            let t: Trace = msg::decode(m.data).expect("trace");
-            traces.push((m.log_time as i64, t.samples_i16.iter().map(|&s| f64::from(s)).collect()));
-        }
-    });
+    let (poses, traces) = truth_x_and_traces(&output);
     let x_at = |stamp: i64| poses[poses.partition_point(|(s, _)| *s <= stamp).clamp(1, poses.len()) - 1].1;
     let start = poses[0].0;
     let mut passes: Vec<(f64, Vec<f64>)> = Vec::new(); // (time into the run, trace)
