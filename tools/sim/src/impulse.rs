@@ -5,7 +5,7 @@
 use std::f64::consts::PI;
 
 use crate::rng::Rng;
-use crate::scenario::ImpulseRadar;
+use crate::scenario::{GroundContact, ImpulseRadar};
 use crate::scene::{AntennaPose, Echo};
 use crate::world::World;
 
@@ -32,6 +32,26 @@ pub struct ImpulseGpr {
     /// Sample buffer reused between traces.
     buffer: Vec<f64>,
     echoes: Vec<Echo>,
+    contact: Option<Contact>,
+}
+
+/// The antenna's uneven contact with the ground ([`GroundContact`]): a unit Gauss-Markov
+/// process in time whose exponential scales the ringing, drawn from a stream of its own so
+/// that a run without it draws the same numbers as before.
+#[derive(Debug)]
+struct Contact {
+    cfg: GroundContact,
+    x: f64,
+    rng: Rng,
+}
+
+impl Contact {
+    /// The ringing's strength factor `dt_s` seconds after the previous trace.
+    fn step(&mut self, dt_s: f64) -> f64 {
+        let a = (-dt_s / self.cfg.correlation_s).exp();
+        self.x = a * self.x + (1.0 - a * a).sqrt() * self.rng.normal();
+        (self.cfg.ringing_sigma * self.x).exp()
+    }
 }
 
 impl ImpulseGpr {
@@ -50,9 +70,23 @@ impl ImpulseGpr {
             ringing_gain: 1.0,
             buffer: vec![0.0; cfg.samples as usize],
             echoes: Vec::new(),
+            contact: None,
             rng,
             cfg: cfg.clone(),
         }
+    }
+
+    /// Lets the antenna's contact with the ground vary ([`GroundContact`]), with random
+    /// numbers from `rng`.
+    #[must_use]
+    pub fn with_ground_contact(mut self, cfg: &GroundContact, mut rng: Rng) -> Self {
+        let x = rng.normal();
+        self.contact = Some(Contact {
+            cfg: cfg.clone(),
+            x,
+            rng,
+        });
+        self
     }
 
     /// Adds `amplitude` times the wavelet arriving at `tau_ns` (relative to the transmit
@@ -87,7 +121,8 @@ impl ImpulseGpr {
         // the radar: direct coupling and repetitive ringing (the same everywhere)
         self.ringing_gain *= 1.0 + cfg.ringing.drift_per_s * dt_s.sqrt() * self.rng.normal();
         self.add_pulse(t_first, 0.0, cfg.direct_coupling_counts);
-        let mut copy = cfg.direct_coupling_counts * cfg.ringing.first * self.ringing_gain;
+        let contact = self.contact.as_mut().map_or(1.0, |c| c.step(dt_s));
+        let mut copy = cfg.direct_coupling_counts * cfg.ringing.first * self.ringing_gain * contact;
         let mut tau = cfg.ringing.period_ns;
         while cfg.ringing.period_ns > 0.0 && tau < window_end + self.half_width_ns && copy.abs() > 1e-3 {
             self.add_pulse(t_first, tau, copy);

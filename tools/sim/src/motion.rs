@@ -1000,6 +1000,7 @@ mod tests {
             start_pause_s: 1.0,
             end_pause_s: 1.0,
             wander: None,
+            ground_contact: None,
         }
     }
 

@@ -392,7 +392,13 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     let mut impulse = None;
     let mut array = None;
     match &scenario.radar {
-        Radar::Impulse(r) => impulse = Some((ImpulseGpr::new(r, Rng::derive(run_seed, "gpr", 0)), r.clone())),
+        Radar::Impulse(r) => {
+            let mut gpr = ImpulseGpr::new(r, Rng::derive(run_seed, "gpr", 0));
+            if let Some(c) = &run.ground_contact {
+                gpr = gpr.with_ground_contact(c, Rng::derive(run_seed, "ground_contact", 0));
+            }
+            impulse = Some((gpr, r.clone()));
+        }
         Radar::Lgpr(r) => {
             let a = LgprArray::new(r, seed, Rng::derive(run_seed, "lgpr", 0));
             let (values, calibration) = a.factory_calibration();

@@ -81,6 +81,24 @@ pub struct Run {
     /// planned.
     #[serde(default)]
     pub wander: Option<Wander>,
+    /// An antenna that does not keep even contact with the ground (a rig pulled by hand over
+    /// a rough floor): its ringing changes strength as the air gap under it changes, along
+    /// every pass and differently on each (seed 000 §3.1). None = even contact.
+    #[serde(default)]
+    pub ground_contact: Option<GroundContact>,
+}
+
+/// How the impulse radar's ringing (`radar.ringing`) changes with the antenna's contact with
+/// the ground: its strength is multiplied by `exp(sigma x(t))`, `x` a unit Gauss-Markov
+/// process in time. Background removal takes out the mean ringing, not these changes: they
+/// are horizontal bands whose strength varies along the track, differently on every pass.
+#[derive(Debug, Clone, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GroundContact {
+    /// RMS of the log of the ringing's strength (0.3: about +-30 %).
+    pub ringing_sigma: f64,
+    /// Correlation time of the changes, s.
+    pub correlation_s: f64,
 }
 
 fn default_pause() -> f64 {
@@ -874,6 +892,14 @@ impl Scenario {
             non_negative(&format!("runs.{i}.start_pause_s"), run.start_pause_s)?;
             non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
             crate::motion::validate(&run.trajectory).map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
+            if let Some(c) = &run.ground_contact {
+                let key = |f: &str| format!("runs.{i}.ground_contact.{f}");
+                non_negative(&key("ringing_sigma"), c.ringing_sigma)?;
+                if c.ringing_sigma > 3.0 {
+                    return Err((key("ringing_sigma"), format!("at most 3, got {}", c.ringing_sigma)));
+                }
+                positive(&key("correlation_s"), c.correlation_s)?;
+            }
             if let Some(w) = &run.wander {
                 let key = |f: &str| format!("runs.{i}.wander.{f}");
                 non_negative(&key("sigma_m"), w.sigma_m)?;

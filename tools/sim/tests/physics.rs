@@ -607,3 +607,67 @@ runs:
         last = delay;
     }
 }
+
+#[test]
+fn uneven_ground_contact_makes_the_ringing_wax_and_wane_along_the_track() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // nothing in the ground and a quiet radar: what changes from trace to trace is the ringing
+    let base = r#"
+name: contact
+seed: 11
+world:
+  layers:
+    - { top_depth_m: 0.0, eps_r: 6.0, attenuation_db_per_m: 4.0 }
+radar: { kind: impulse, noise_counts: 0.0, wow_counts: 0.0, dc_offset_counts: 0.0, dc_walk_counts: 0.0, time_zero_jitter_ns: 0.0 }
+vibration: { roll_deg: 0.0, pitch_deg: 0.0, height_m: 0.0 }
+runs:
+  - name: even
+    trajectory: { kind: long_drive, start: [0, 0], heading_deg: 0, length_m: 20, speed_mps: 0.5 }
+  - name: uneven
+    ground_contact: { ringing_sigma: 0.3, correlation_s: 1.0 }
+    trajectory: { kind: long_drive, start: [0, 0], heading_deg: 0, length_m: 20, speed_mps: 0.5 }
+"#;
+    let scenario = write_scenario(dir.path(), "contact.yaml", base);
+    let gprflow_sim::scenario::Radar::Impulse(cfg) = &scenario.radar else {
+        panic!("impulse radar")
+    };
+    // the first copy of the direct coupling, one ringing period after time zero
+    let first_copy = (cfg.time_zero_sample + cfg.ringing.period_ns / cfg.sample_interval_ns).round() as usize;
+    let mut strength = Vec::new();
+    for run in ["even", "uneven"] {
+        let output = dir.path().join(format!("{run}.mcap"));
+        let opts = SimOptions {
+            run: Some(run.into()),
+            output: output.clone(),
+            ..SimOptions::default()
+        };
+        simulate(&scenario, &opts, &mut |_| {}).expect("simulate");
+        let (_, traces) = truth_x_and_traces(&output);
+        strength.push(traces.iter().map(|(_, s)| s[first_copy]).collect::<Vec<f64>>());
+    }
+    let log_sd = |v: &[f64]| {
+        let logs: Vec<f64> = v.iter().map(|x| x.abs().max(1.0).ln()).collect();
+        let mean = logs.iter().sum::<f64>() / logs.len() as f64;
+        (logs.iter().map(|l| (l - mean) * (l - mean)).sum::<f64>() / logs.len() as f64).sqrt()
+    };
+    let (even, uneven) = (log_sd(&strength[0]), log_sd(&strength[1]));
+    assert!(
+        even < 0.05,
+        "even contact: the ringing holds its strength (log sd {even:.3})"
+    );
+    assert!(
+        (0.15..0.45).contains(&uneven),
+        "uneven contact: the ringing's log strength varies by about 0.3 (log sd {uneven:.3})"
+    );
+    // slow changes: alike from one trace to the next, unrelated 5 s (250 traces) apart
+    let lag_correlation = |v: &[f64], lag: usize| {
+        let logs: Vec<f64> = v.iter().map(|x| x.abs().max(1.0).ln()).collect();
+        let mean = logs.iter().sum::<f64>() / logs.len() as f64;
+        let d: Vec<f64> = logs.iter().map(|l| l - mean).collect();
+        let num: f64 = d.iter().zip(&d[lag..]).map(|(a, b)| a * b).sum();
+        num / d.iter().map(|a| a * a).sum::<f64>()
+    };
+    let (next, apart) = (lag_correlation(&strength[1], 1), lag_correlation(&strength[1], 250));
+    assert!(next > 0.9, "trace to trace correlation {next:.3}");
+    assert!(apart.abs() < 0.3, "5 s apart correlation {apart:.3}");
+}

@@ -110,6 +110,23 @@ fn scenario_errors_name_the_file_line_and_key() {
     );
     let e = parse_err(&GOOD.replace("speed_mps: 0.5", "speed_mps: .nan"));
     assert!(e.contains("runs.0.trajectory.speed_mps"), "{e}");
+    let contact = |c: &str| GOOD.replace("  - name: a\n", &format!("  - name: a\n    ground_contact: {c}\n"));
+    assert!(
+        Scenario::parse(
+            &contact("{ ringing_sigma: 0.5, correlation_s: 1.0 }"),
+            Path::new("good.yaml")
+        )
+        .is_ok()
+    );
+    let e = parse_err(&contact("{ ringing_sigma: -0.5, correlation_s: 1.0 }"));
+    assert!(
+        e.starts_with("bad.yaml:9:") && e.contains("runs.0.ground_contact.ringing_sigma"),
+        "{e}"
+    );
+    let e = parse_err(&contact("{ ringing_sigma: 0.5, correlation_s: 0 }"));
+    assert!(e.contains("runs.0.ground_contact.correlation_s"), "{e}");
+    let e = parse_err(&contact("{ ringing_sigma: 0.5 }"));
+    assert!(e.starts_with("bad.yaml:9:") && e.contains("correlation_s"), "{e}");
     let e = parse_err(&GOOD.replace("kind: long_drive", "kind: teleport"));
     assert!(e.starts_with("bad.yaml:9:") && e.contains("teleport"), "{e}");
     let e = parse_err("name: [unclosed");
