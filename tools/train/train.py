@@ -286,7 +286,7 @@ def stretch_rows(images, scale):
 
 
 def fine_tune(model, images, pairs, mask, apart_mask, resolution_m, column_stride, steps, batch, lr, rng, recon_weight=1.0,
-              temperature=0.02, apart_weight=0.1, apart_margin=0.5):
+              temperature=0.02, apart_weight=0.1, apart_margin=0.5, cross_same_run=False):
     """Registration fine-tuning of the encoder through a soft argmax of the correlation curves.
 
     The argmax of SPEC is not differentiable; here each channel's curve becomes a softmax
@@ -295,11 +295,16 @@ def fine_tune(model, images, pairs, mask, apart_mask, resolution_m, column_strid
     travel-time stretch (soil moisture) and noise. Staged as in the thesis: the heads are fit
     afterwards on the hard correlation vectors. Pairs that share no ground (``apart_mask``) are
     pushed below ``apart_margin`` peak correlation, so that ``share_threshold`` separates them.
+    ``cross_same_run``: the hard half of each batch only from other legs of the same run (not
+    from runs at another soil moisture, which no model registers).
     """
     import torch
 
     idx = np.flatnonzero(mask)
-    cross = np.flatnonzero(mask & pairs.cross_pass & (pairs.kind == "truth"))
+    hard = mask & pairs.cross_pass & (pairs.kind == "truth")
+    if cross_same_run:
+        hard &= pairs.ref_run == pairs.query_run
+    cross = np.flatnonzero(hard)
     apart = np.flatnonzero(apart_mask)
     w = math.ceil(images[0].shape[-1] / column_stride)
     ts, d = shifts_tried(w, resolution_m, column_stride)
@@ -427,6 +432,8 @@ def parse_args():
     p.add_argument("--spacing-m", type=float, default=0.1, help="submap spacing for graphs/submaps.yaml")
     p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2"])
     p.add_argument("--val-scenario", default="training_3")
+    p.add_argument("--runs", nargs="+", default=list(gprdata.RUNS),
+                   help="the runs of each scenario to use (by_hand: wandering, drying, uneven ground contact)")
     p.add_argument("--channels", type=int, default=12, help="K, encoder output channels")
     p.add_argument("--levels", type=int, default=5, help="encoder convolutions (row stride 2 each)")
     p.add_argument("--column-stride", type=int, default=2, choices=(1, 2, 4))
@@ -439,6 +446,9 @@ def parse_args():
                    help="also fit and validate heads on the pre-trained encoder alone")
     p.add_argument("--finetune-batch", type=int, default=8)
     p.add_argument("--finetune-lr", type=float, default=5e-4)
+    p.add_argument("--finetune-cross", choices=("all", "same-run"), default="all",
+                   help="where the hard half of each fine-tuning batch comes from: other passes of any run, "
+                        "or only other legs of the same run")
     p.add_argument("--hidden", type=int, default=16, help="hidden units of the nonlinear head")
     p.add_argument("--pairs-per-submap", type=int, default=2)
     p.add_argument("--threads", type=int, default=1, help="torch threads (the machine is shared)")
@@ -453,7 +463,7 @@ def parse_args():
 
 def load_scenario(args, scenario):
     runs = []
-    for run in gprdata.RUNS:
+    for run in args.runs:
         t = time.time()
         r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m)
         log(f"{scenario} {run}: {len(r.ids)} valid submaps, {r.leg.max() + 1} legs ({time.time() - t:.0f} s)")
@@ -531,7 +541,8 @@ def main():
         t = time.time()
         fine_tune(ae, images, pairs, (pairs.kind != "apart") & ~is_val, (pairs.kind == "apart") & ~is_val,
                   resolution_m, args.column_stride,
-                  args.finetune_steps, args.finetune_batch, args.finetune_lr, rng)
+                  args.finetune_steps, args.finetune_batch, args.finetune_lr, rng,
+                  cross_same_run=args.finetune_cross == "same-run")
         finetune_seconds = time.time() - t
     val_l1_tuned = heldout_l1(ae, val_images)
     log(f"after fine-tuning: {finetune_seconds:.0f} s, held-out L1 {val_l1_tuned:.4f}")
@@ -543,7 +554,7 @@ def main():
               "held_out": {kd: int(((pairs.kind == kd) & is_val).sum()) for kd in ("truth", "homography", "apart")}}
     counts["train"]["truth_cross_pass"] = int(((pairs.kind == "truth") & ~is_val & pairs.cross_pass).sum())
     counts["held_out"]["truth_cross_pass"] = int(((pairs.kind == "truth") & is_val & pairs.cross_pass).sum())
-    training = {"scenarios": {"train": args.train_scenarios, "held_out": args.val_scenario, "runs": list(gprdata.RUNS)},
+    training = {"scenarios": {"train": args.train_scenarios, "held_out": args.val_scenario, "runs": list(args.runs)},
                 "submaps": {"spacing_m": args.spacing_m, "valid": {r.scenario + "/" + r.run: int(len(r.ids)) for r in runs}},
                 "pairs": counts,
                 "pair_rules": {"cross_track_m": gprdata.CROSS_TRACK_M, "heading_deg": 15.0,
@@ -551,6 +562,7 @@ def main():
                 "autoencoder": {"loss": "L1", "epochs": args.epochs, "submaps_per_epoch": int(len(pick)),
                                 "crop_cols": 128, "held_out_l1": round(val_l1, 5), "seconds": round(ae_seconds, 1)},
                 "fine_tune": {"steps": args.finetune_steps, "batch": args.finetune_batch, "lr": args.finetune_lr,
+                              "cross": args.finetune_cross,
                               "loss": "huber of the soft-argmax shift per channel + L1 reconstruction",
                               "augmentation": "query travel times stretched x0.85..1.18 (half the pairs), noise",
                               "held_out_l1": round(val_l1_tuned, 5), "seconds": round(finetune_seconds, 1)},
