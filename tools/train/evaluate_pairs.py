@@ -1,0 +1,112 @@
+#!/usr/bin/env python3
+"""Engineered baseline and learned model on every cross-pass pair of simulated runs (a tool).
+
+Table 4.1 of seed 000 compares the models on validation pairs. ``tools/scripts/tables.sh`` does
+that through the localisation graph (the register stage's loop candidates, its gates); this
+does it on all ground-truth pairs of a run instead, gates off and on, to see where each model
+fails. Pairs follow the training rules (tools/train/gprdata.py: anchors within 0.25 m
+cross-track and 15 degrees, |shift| <= 1.5 m), only between different legs; the engineered
+baseline is eq. 4.2-4.3 at full column resolution, the learned model is SPEC.md with the given
+encoder and head. Evaluation worlds may be measured here; they are never trained on.
+
+    .venv-train/bin/python tools/train/evaluate_pairs.py basement:by_hand factory_floor:by_hand \\
+        --binary target/release/gprflow --cache-dir /tmp/evaluate
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import gprdata  # noqa: E402
+import train  # noqa: E402
+
+# the register stage's engineered gate (graphs/localize.yaml: min_score default)
+ENGINEERED_MIN_SCORE = 0.3
+
+
+def rmse_cm(err_m):
+    return float(np.sqrt(np.mean(np.square(err_m)))) * 100 if len(err_m) else float("nan")
+
+
+def evaluate(args, scenario, run):
+    r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m)
+    pairs = gprdata.truth_pairs([r], np.random.default_rng(args.seed), per_submap=3, apart_per_submap=1)
+    cross = (pairs.kind == "truth") & pairs.cross_pass
+    apart = pairs.kind == "apart"
+    images = [np.stack([gprdata.standardise(x) for x in r.pixels])]
+    resolution_m = float(r.resolution_m[0])
+    idx = np.flatnonzero(cross)
+    ts, d = train.shifts_tried(images[0].shape[-1], resolution_m, 1)
+    eng, eng_peak = np.full(len(pairs), np.nan), np.full(len(pairs), np.nan)
+    for s in range(0, len(idx), 64):
+        sl = idx[s:s + 64]
+        ref, qry = (x[:, None] for x in pairs.gather(images, sl))
+        tau, peak = train.peaks(train.correlation_curves_batched(ref, qry, ts), ts, d)
+        eng[sl], eng_peak[sl] = tau[:, 0], peak[:, 0]
+
+    import onnxruntime as ort
+
+    head = json.load(open(args.head))
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    sess = ort.InferenceSession(args.model, so)
+    feats = np.concatenate([sess.run(None, {"submap": im[None, None]})[0] for im in images[0]])
+    sel = cross | apart
+    k = head["channels"]
+    v = np.zeros((len(pairs), 2 * k))
+    v[sel] = train.correlation_vectors([feats], pairs.select(sel), resolution_m, head["column_stride"])
+    learned = train.apply_head(head, v)
+    shares = v[:, k:].mean(1) >= head["share_threshold"]
+    target = pairs.target_m
+    gate = cross & (eng_peak >= ENGINEERED_MIN_SCORE)
+    return {
+        "world": f"{scenario}/{run}", "pairs": int(cross.sum()),
+        "engineered_rmse_cm": rmse_cm(eng[cross] - target[cross]),
+        "engineered_over_10cm": float(np.mean(np.abs(eng[cross] - target[cross]) > 0.1)),
+        "engineered_gated_pass": float(gate.sum() / max(1, cross.sum())),
+        "engineered_gated_rmse_cm": rmse_cm(eng[gate] - target[gate]),
+        "learned_rmse_cm": rmse_cm(learned[cross] - target[cross]),
+        "learned_over_10cm": float(np.mean(np.abs(learned[cross] - target[cross]) > 0.1)),
+        "learned_shared_pass": float((cross & shares).sum() / max(1, cross.sum())),
+        "learned_shared_rmse_cm": rmse_cm(learned[cross & shares] - target[cross & shares]),
+        "apart_rejected": float((~shares[apart]).mean()) if apart.any() else float("nan"),
+    }
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("runs", nargs="+", help="SCENARIO:RUN, e.g. basement:by_hand (tools/sim/scenarios/SCENARIO.yaml)")
+    p.add_argument("--binary", default="target/release/gprflow")
+    p.add_argument("--cache-dir", default="/tmp/evaluate")
+    p.add_argument("--spacing-m", type=float, default=0.1)
+    p.add_argument("--model", default=os.path.join(train.MODELS_DIR, train.ONNX_NAME))
+    p.add_argument("--head", default=os.path.join(train.MODELS_DIR, "ground_encoding.head.json"))
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true", help="one JSON object per run instead of a table")
+    args = p.parse_args()
+    os.makedirs(args.cache_dir, exist_ok=True)
+    rows = []
+    for spec in args.runs:
+        scenario, _, run = spec.partition(":")
+        rows.append(evaluate(args, scenario, run or "by_hand"))
+        if args.json:
+            print(json.dumps(rows[-1]), flush=True)
+    if args.json:
+        return
+    print("| run | pairs | engineered | engineered >10 cm | engineered, peak >= 0.3 | learned | learned >10 cm "
+          "| learned, shared | non-overlapping rejected |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['world']} | {r['pairs']} | {r['engineered_rmse_cm']:.1f} | {100 * r['engineered_over_10cm']:.0f} % "
+              f"| {r['engineered_gated_rmse_cm']:.1f} ({100 * r['engineered_gated_pass']:.0f} %) "
+              f"| {r['learned_rmse_cm']:.1f} | {100 * r['learned_over_10cm']:.0f} % "
+              f"| {r['learned_shared_rmse_cm']:.1f} ({100 * r['learned_shared_pass']:.0f} %) "
+              f"| {100 * r['apart_rejected']:.0f} % |")
+
+
+if __name__ == "__main__":
+    main()
