@@ -32,12 +32,24 @@ def rmse_cm(err_m):
     return float(np.sqrt(np.mean(np.square(err_m)))) * 100 if len(err_m) else float("nan")
 
 
+def without_eigenimages(pixels, count):
+    """Each submap minus its ``count`` largest singular components (eigenimage filtering: a
+    horizontal band whose strength varies along the track is one such component)."""
+    if count == 0:
+        return pixels
+    out = np.empty_like(pixels)
+    for i, x in enumerate(pixels.astype(np.float64)):
+        u, s, vt = np.linalg.svd(x, full_matrices=False)
+        out[i] = x - (u[:, :count] * s[:count]) @ vt[:count]
+    return out
+
+
 def evaluate(args, scenario, run):
     r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m)
     pairs = gprdata.truth_pairs([r], np.random.default_rng(args.seed), per_submap=3, apart_per_submap=1)
     cross = (pairs.kind == "truth") & pairs.cross_pass
     apart = pairs.kind == "apart"
-    images = [np.stack([gprdata.standardise(x) for x in r.pixels])]
+    images = [np.stack([gprdata.standardise(x) for x in without_eigenimages(r.pixels, args.remove_eigenimages)])]
     resolution_m = float(r.resolution_m[0])
     idx = np.flatnonzero(cross)
     ts, d = train.shifts_tried(images[0].shape[-1], resolution_m, 1)
@@ -86,6 +98,9 @@ def main():
     p.add_argument("--model", default=os.path.join(train.MODELS_DIR, train.ONNX_NAME))
     p.add_argument("--head", default=os.path.join(train.MODELS_DIR, "ground_encoding.head.json"))
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--remove-eigenimages", type=int, default=0, metavar="N",
+                   help="take each submap's N largest singular components out first (both models; a test of "
+                        "what the banding costs, not part of the pipeline)")
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a table")
     args = p.parse_args()
     os.makedirs(args.cache_dir, exist_ok=True)
