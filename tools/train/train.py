@@ -153,9 +153,32 @@ def correlation_vectors(features, pairs, resolution_m, column_stride, batch=256)
 
 # --- model ------------------------------------------------------------------------------------
 
-def build_autoencoder(channels, column_stride, levels=3):
+BAND_ITERATIONS = 6
+
+
+def remove_band(submap, iterations=BAND_ITERATIONS):
+    """The ``band`` front end: each submap ``(B, 1, rows, cols)`` minus its largest singular
+    component (power iteration from a flat column vector), re-standardised. A horizontal band
+    whose strength varies along the track (uneven ground contact) is such a component; no
+    weights, part of the exported encoder graph."""
+    import torch
+
+    x = submap[:, 0]
+    v = torch.ones_like(x[:, :1, :]).transpose(1, 2)  # (B, cols, 1), normalised by the first step
+    for _ in range(iterations):
+        v = torch.matmul(x.transpose(1, 2), torch.matmul(x, v))
+        v = v / (torch.linalg.vector_norm(v, dim=1, keepdim=True) + 1e-12)
+    y = x - torch.matmul(torch.matmul(x, v), v.transpose(1, 2))
+    y = y - y.mean(dim=(1, 2), keepdim=True)
+    y = y / (y.pow(2).mean(dim=(1, 2), keepdim=True).sqrt() + NORM_EPS)
+    return y[:, None]
+
+
+def build_autoencoder(channels, column_stride, levels=3, front_end="none"):
     """A small convolutional autoencoder: ``levels`` 3 x 3 convolutions of row stride 2 down
-    (the first one or two also of column stride 2, for ``column_stride``), 3 up."""
+    (the first one or two also of column stride 2, for ``column_stride``), 3 up. ``front_end``
+    ``band``: the encoder first applies :func:`remove_band` (and the decoder reconstructs
+    that)."""
     import torch.nn as nn
     import torch.nn.functional as F
 
@@ -169,8 +192,11 @@ def build_autoencoder(channels, column_stride, levels=3):
             self.convs = nn.ModuleList(
                 nn.Conv2d(i, o, 3, stride=(2, s), padding=1) for i, o, s in zip(ins, widths, col))
 
+        def front(self, submap):
+            return remove_band(submap) if front_end == "band" else submap
+
         def forward(self, submap):
-            x = submap
+            x = self.front(submap)
             for k, conv in enumerate(self.convs):
                 x = conv(x)
                 if k + 1 < len(self.convs):
@@ -201,7 +227,7 @@ def build_autoencoder(channels, column_stride, levels=3):
         def encode_decode(self, submap):
             """``(features, reconstruction)``."""
             sizes = []
-            x = submap
+            x = self.encoder.front(submap)
             for k, conv in enumerate(self.encoder.convs):
                 sizes.append(tuple(x.shape[-2:]))
                 x = conv(x)
@@ -211,6 +237,10 @@ def build_autoencoder(channels, column_stride, levels=3):
 
         def forward(self, submap):
             return self.encode_decode(submap)[1]
+
+        def target(self, submap):
+            """What the decoder reconstructs: the encoder's input after its front end."""
+            return self.encoder.front(submap)
 
     return AutoEncoder()
 
@@ -229,7 +259,7 @@ def pretrain(model, images, epochs, batch, lr, rng, crop_cols=128, log_every=50)
         for s in range(0, len(order) - batch + 1, batch):
             c0 = int(rng.integers(0, images.shape[-1] - crop_cols + 1))
             x = torch.from_numpy(np.ascontiguousarray(images[order[s:s + batch]][:, None, :, c0:c0 + crop_cols]))
-            loss = (model(x) - x).abs().mean()
+            loss = (model(x) - model.target(x)).abs().mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -328,7 +358,7 @@ def fine_tune(model, images, pairs, mask, apart_mask, resolution_m, column_strid
         curves = torch_curves(fr, fq, ts)
         soft = (torch.softmax(curves / temperature, -1) * shift_m).sum(-1)
         reg = huber(soft, target[:, None].expand_as(soft))
-        recon = (rec - ref).abs().mean()
+        recon = (rec - model.target(ref)).abs().mean()
         # §4.5.2: submaps that share no ground should not correlate (peaks below apart_margin)
         sel = rng.choice(apart, size=batch // 2, replace=False)
         fa, fb = (model.encoder(torch.from_numpy(x[:, None])) for x in pairs.gather(images, sel))
@@ -351,7 +381,7 @@ def heldout_l1(model, images, batch=16):
 
     model.eval()
     with torch.no_grad():
-        return float(np.mean([(model(x) - x).abs().mean().item()
+        return float(np.mean([(model(x) - model.target(x)).abs().mean().item()
                               for x in (torch.from_numpy(images[s:s + batch][:, None])
                                         for s in range(0, len(images), batch))]))
 
@@ -437,6 +467,8 @@ def parse_args():
     p.add_argument("--channels", type=int, default=12, help="K, encoder output channels")
     p.add_argument("--levels", type=int, default=5, help="encoder convolutions (row stride 2 each)")
     p.add_argument("--column-stride", type=int, default=2, choices=(1, 2, 4))
+    p.add_argument("--front-end", choices=("none", "band"), default="none",
+                   help="band: the encoder first takes out each submap's largest singular component")
     p.add_argument("--epochs", type=int, default=3)
     p.add_argument("--ae-samples", type=int, default=1600, help="submaps per autoencoder epoch")
     p.add_argument("--batch", type=int, default=16)
@@ -520,7 +552,7 @@ def main():
 
     # §4.5.1: autoencoder on the training scenarios' submaps
     train_images = np.concatenate([im for im, v in zip(images, val_run) if not v])
-    ae = build_autoencoder(args.channels, args.column_stride, args.levels)
+    ae = build_autoencoder(args.channels, args.column_stride, args.levels, args.front_end)
     t = time.time()
     pick = rng.choice(len(train_images), size=min(args.ae_samples, len(train_images)), replace=False)
     pretrain(ae, train_images[pick], args.epochs, args.batch, args.lr, rng)
@@ -559,7 +591,7 @@ def main():
                 "pairs": counts,
                 "pair_rules": {"cross_track_m": gprdata.CROSS_TRACK_M, "heading_deg": 15.0,
                                "max_target_m": gprdata.MAX_TARGET_M, "apart_m": gprdata.APART_M},
-                "autoencoder": {"loss": "L1", "epochs": args.epochs, "submaps_per_epoch": int(len(pick)),
+                "autoencoder": {"loss": "L1", "front_end": args.front_end, "epochs": args.epochs, "submaps_per_epoch": int(len(pick)),
                                 "crop_cols": 128, "held_out_l1": round(val_l1, 5), "seconds": round(ae_seconds, 1)},
                 "fine_tune": {"steps": args.finetune_steps, "batch": args.finetune_batch, "lr": args.finetune_lr,
                               "cross": args.finetune_cross,
