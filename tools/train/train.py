@@ -462,23 +462,23 @@ def parse_args():
     p.add_argument("--spacing-m", type=float, default=0.1, help="submap spacing for graphs/submaps.yaml")
     p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2"])
     p.add_argument("--val-scenario", default="training_3")
-    p.add_argument("--runs", nargs="+", default=list(gprdata.RUNS),
+    p.add_argument("--runs", nargs="+", default=list(gprdata.RUNS) + ["by_hand"],
                    help="the runs of each scenario to use (by_hand: wandering, drying, uneven ground contact)")
     p.add_argument("--channels", type=int, default=12, help="K, encoder output channels")
     p.add_argument("--levels", type=int, default=5, help="encoder convolutions (row stride 2 each)")
     p.add_argument("--column-stride", type=int, default=2, choices=(1, 2, 4))
-    p.add_argument("--front-end", choices=("none", "band"), default="none",
+    p.add_argument("--front-end", choices=("none", "band"), default="band",
                    help="band: the encoder first takes out each submap's largest singular component")
     p.add_argument("--epochs", type=int, default=3)
     p.add_argument("--ae-samples", type=int, default=1600, help="submaps per autoencoder epoch")
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--lr", type=float, default=3e-3)
-    p.add_argument("--finetune-steps", type=int, default=400, help="registration fine-tuning steps (0: none)")
+    p.add_argument("--finetune-steps", type=int, default=800, help="registration fine-tuning steps (0: none)")
     p.add_argument("--compare-pretrained", action=argparse.BooleanOptionalAction, default=False,
                    help="also fit and validate heads on the pre-trained encoder alone")
-    p.add_argument("--finetune-batch", type=int, default=8)
+    p.add_argument("--finetune-batch", type=int, default=12)
     p.add_argument("--finetune-lr", type=float, default=5e-4)
-    p.add_argument("--finetune-cross", choices=("all", "same-run"), default="all",
+    p.add_argument("--finetune-cross", choices=("all", "same-run"), default="same-run",
                    help="where the hard half of each fine-tuning batch comes from: other passes of any run, "
                         "or only other legs of the same run")
     p.add_argument("--hidden", type=int, default=16, help="hidden units of the nonlinear head")
