@@ -51,14 +51,7 @@ def evaluate(args, scenario, run):
     apart = pairs.kind == "apart"
     images = [np.stack([gprdata.standardise(x) for x in without_eigenimages(r.pixels, args.remove_eigenimages)])]
     resolution_m = float(r.resolution_m[0])
-    idx = np.flatnonzero(cross)
-    ts, d = train.shifts_tried(images[0].shape[-1], resolution_m, 1)
-    eng, eng_peak = np.full(len(pairs), np.nan), np.full(len(pairs), np.nan)
-    for s in range(0, len(idx), 64):
-        sl = idx[s:s + 64]
-        ref, qry = (x[:, None] for x in pairs.gather(images, sl))
-        tau, peak = train.peaks(train.correlation_curves_batched(ref, qry, ts), ts, d)
-        eng[sl], eng_peak[sl] = tau[:, 0], peak[:, 0]
+    eng, eng_peak = train.engineered_baseline(images, pairs, cross, resolution_m)
 
     import onnxruntime as ort
 

@@ -563,7 +563,7 @@ def main():
     log(f"autoencoder: {ae_seconds:.0f} s, held-out L1 {val_l1:.4f}")
 
     val_truth = is_val & (pairs.kind == "truth")
-    engineered = engineered_baseline(images, pairs, val_truth, resolution_m)
+    engineered, _ = engineered_baseline(images, pairs, val_truth, resolution_m)
     fit = {}
     if args.finetune_steps > 0 and args.compare_pretrained:
         log("heads on the pre-trained encoder alone, for comparison:")
@@ -681,17 +681,18 @@ def fit_and_validate(encoder, images, pairs, is_val, resolution_m, engineered, a
 
 
 def engineered_baseline(images, pairs, mask, resolution_m, batch=64):
-    """Eq. 4.2-4.3 on the standardised submaps (stride 1, SPEC shift rules), for comparison."""
-    out = np.full(len(pairs), np.nan)
+    """Eq. 4.2-4.3 on the standardised submaps (stride 1, SPEC shift rules), for comparison:
+    ``(shift_m, peak)`` for the pairs in ``mask`` (NaN elsewhere)."""
+    out, peak = np.full(len(pairs), np.nan), np.full(len(pairs), np.nan)
     idx = np.flatnonzero(mask)
     w = images[0].shape[-1]
     ts, d = shifts_tried(w, resolution_m, 1)
     for s in range(0, len(idx), batch):
         sl = idx[s:s + batch]
         ref, qry = (x[:, None] for x in pairs.gather(images, sl))
-        tau, _ = peaks(correlation_curves_batched(ref, qry, ts), ts, d)
-        out[sl] = tau[:, 0]
-    return out
+        tau, m = peaks(correlation_curves_batched(ref, qry, ts), ts, d)
+        out[sl], peak[sl] = tau[:, 0], m[:, 0]
+    return out, peak
 
 
 # --- export -------------------------------------------------------------------------------------
