@@ -1,5 +1,5 @@
 """The learned registration model's encoder in Python onnxruntime (one intra-op and one
-inter-op thread), timed on the same submaps as the Rust benchmark
+inter-op thread; the model's front end in numpy before the graph), timed on the same submaps as the Rust benchmark
 (stages/register/examples/bench_register.rs), and the Rust features checked against it to 1e-5
 relative (max |ours - ref| <= 1e-5 max |ref|, per submap). Also times the correlation of one
 pair in numpy (tools/train/train.py's batched FFT version, the fastest Python one) for
@@ -73,21 +73,24 @@ def run(args):
     so.inter_op_num_threads = 1
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     sess = ort.InferenceSession(args.model, so, providers=["CPUExecutionProvider"])
-    inputs = [standardise(s)[None, None] for s in subs]
+    sys.path.insert(0, str(ROOT / "tools/train"))
+    import gprdata  # numpy only: the model's front end (SPEC "Front end")
+
+    front = gprdata.front_end_of(sess)
+    inputs = [gprdata.apply_front_end(front, standardise(s))[None, None] for s in subs]
     feats = [sess.run(None, {"submap": x})[0][0] for x in inputs]
     it = iter(range(10 ** 9))
     run_only = timed(lambda: sess.run(None, {"submap": inputs[next(it) % len(inputs)]}), args.iterations)
-    with_std = timed(lambda: sess.run(None, {"submap": standardise(subs[next(it) % len(subs)])[None, None]}),
-                     args.iterations)
+    with_std = timed(lambda: sess.run(None, {"submap": gprdata.apply_front_end(
+        front, standardise(subs[next(it) % len(subs)]))[None, None]}), args.iterations)
     report = {"onnxruntime": ort.__version__, "threads": 1, "features": list(feats[0].shape),
-              "encoder_run": run_only, "encoder_standardise_and_run": with_std}
+              "front_end": list(front), "encoder_run": run_only, "encoder_standardise_and_run": with_std}
     if args.ours:
         ours = np.fromfile(args.ours, dtype="<f4").reshape((len(subs),) + feats[0].shape)
         err = max(float(np.abs(o - f).max() / max(np.abs(f).max(), 1e-30)) for o, f in zip(ours, feats))
         report["ours_vs_python_rel"] = err
         report["agree_to_1e-5"] = err <= RTOL
     # the correlation of one pair in numpy, for reference (the training side's fastest version)
-    sys.path.insert(0, str(ROOT / "tools/train"))
     try:
         import train
     except ImportError as e:  # train.py needs only numpy at import; say why if it cannot load

@@ -59,7 +59,7 @@ def evaluate(args, scenario, run):
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
     sess = ort.InferenceSession(args.model, so)
-    feats = np.concatenate([sess.run(None, {"submap": im[None, None]})[0] for im in images[0]])
+    feats = np.stack([gprdata.encode(sess, im) for im in images[0]])
     sel = cross | apart
     k = head["channels"]
     v = np.zeros((len(pairs), 2 * k))

@@ -287,3 +287,44 @@ def homography_pairs(runs, rng, per_submap=4):
             js = rng.choice(js, size=min(per_submap, len(js)), replace=False)
             parts.append(_pairs(ri, np.full(len(js), i), ri, js, dx[js], "homography", False))
     return Pairs.concat(parts)
+
+
+# --- the encoder's front end (SPEC "Front end"), run before the ONNX graph ----------------------
+
+FRONT_END_KEY = "gprflow.front_end"
+FRONT_END_ITERATIONS_KEY = "gprflow.front_end.iterations"
+
+
+def front_end_of(sess):
+    """``("none", 0)`` or ``("band", iterations)``, as an onnxruntime session's model metadata
+    names it."""
+    meta = sess.get_modelmeta().custom_metadata_map
+    name = meta.get(FRONT_END_KEY, "none")
+    if name == "none":
+        return ("none", 0)
+    if name == "band":
+        return ("band", int(meta[FRONT_END_ITERATIONS_KEY]))
+    raise ValueError(f"unknown front end {name!r}")
+
+
+def apply_front_end(front, image):
+    """``image`` (standardised ``rows x cols``) through ``front`` (see :func:`front_end_of`), in
+    f64, as f32: for ``band`` the largest singular component (power iteration from a flat column
+    vector) taken out, then standardised again."""
+    name, iterations = front
+    if name == "none":
+        return np.asarray(image, dtype=np.float32)
+    x = np.asarray(image, dtype=np.float64)
+    v = np.ones(x.shape[1])
+    for _ in range(iterations):
+        v = x.T @ (x @ v)
+        v = v / (np.sqrt(v @ v) + 1e-12)
+    y = x - np.outer(x @ v, v)
+    y = y - y.mean()
+    return (y / (np.sqrt((y * y).mean()) + 1e-6)).astype(np.float32)
+
+
+def encode(sess, standardised, front=None):
+    """Features ``K x h x w`` of one standardised submap: the front end, then the graph."""
+    front = front_end_of(sess) if front is None else front
+    return sess.run(None, {"submap": apply_front_end(front, standardised)[None, None]})[0][0]

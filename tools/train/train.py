@@ -195,13 +195,16 @@ def build_autoencoder(channels, column_stride, levels=3, front_end="none"):
         def front(self, submap):
             return remove_band(submap) if front_end == "band" else submap
 
-        def forward(self, submap):
-            x = self.front(submap)
+        def body(self, x):
+            """The convolutions: what the exported graph holds (the front end runs before it)."""
             for k, conv in enumerate(self.convs):
                 x = conv(x)
                 if k + 1 < len(self.convs):
                     x = F.relu(x)
             return x
+
+        def forward(self, submap):
+            return self.body(self.front(submap))
 
     class Decoder(nn.Module):
         """Upsample and convolve back to the input's size (the last step straight to one channel)."""
@@ -704,19 +707,39 @@ def export(args, encoder, heads, images, runs, pairs, is_val, resolution_m):
     os.makedirs(args.models_dir, exist_ok=True)
     onnx_path = os.path.join(args.models_dir, ONNX_NAME)
     example = torch.from_numpy(images[0][:1][:, None])
-    torch.onnx.export(encoder, (example,), onnx_path, input_names=["submap"], output_names=["features"],
+
+    class Graph(torch.nn.Module):
+        """The encoder's convolutions; its front end runs before the graph (SPEC "Front end")."""
+
+        def __init__(self):
+            super().__init__()
+            self.encoder = encoder
+
+        def forward(self, x):
+            return self.encoder.body(x)
+
+    torch.onnx.export(Graph(), (example,), onnx_path, input_names=["submap"], output_names=["features"],
                       dynamic_axes={"submap": {2: "rows", 3: "cols"}, "features": {2: "h", 3: "w"}},
                       opset_version=OPSET, dynamo=False)
     import onnx
 
-    onnx.checker.check_model(onnx.load(onnx_path))
+    model = onnx.load(onnx_path)
+    front = ("band", BAND_ITERATIONS) if args.front_end == "band" else ("none", 0)
+    for key, value in ((gprdata.FRONT_END_KEY, front[0]), (gprdata.FRONT_END_ITERATIONS_KEY, str(front[1]))):
+        p = model.metadata_props.add()
+        p.key, p.value = key, value
+    onnx.checker.check_model(model)
+    onnx.save(model, onnx_path)
     sess = session(onnx_path)
-    # torch vs onnxruntime, at the real size and at odd sizes
+    if gprdata.front_end_of(sess) != front:
+        sys.exit(f"exported front end {gprdata.front_end_of(sess)}, expected {front}")
+    # torch (front end and convolutions) vs numpy front end + onnxruntime, at the real size and
+    # at odd sizes
     for shape in ((1, 1) + images[0].shape[1:], (1, 1, 150, 173), (1, 1, 64, 31)):
         x = np.random.default_rng(0).standard_normal(shape).astype(np.float32)
         with torch.no_grad():
             ref = encoder(torch.from_numpy(x)).numpy()
-        got = sess.run(None, {"submap": x})[0]
+        got = gprdata.encode(sess, x[0, 0], front)[None]
         if got.shape[-1] != math.ceil(shape[-1] / args.column_stride):
             sys.exit(f"onnx width {got.shape} for {shape}")
         err = np.abs(got - ref).max() / np.abs(ref).max()
@@ -745,6 +768,7 @@ def session(path):
 
 
 def time_encoder(path, image, runs=300):
+    """The graph alone (without the front end, which runs in Rust)."""
     sess = session(path)
     x = image[None, None].astype(np.float32)
     for _ in range(30):
@@ -831,8 +855,8 @@ def fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non):
     """One case, or None when an argmax is too close to a tie to be a fair parity test."""
     ref_px = runs[pairs.ref_run[j]].pixels[pairs.ref_index[j]]
     qry_px = runs[pairs.query_run[j]].pixels[pairs.query_index[j]]
-    fr = sess.run(None, {"submap": gprdata.standardise(ref_px)[None, None]})[0][0]
-    fq = sess.run(None, {"submap": gprdata.standardise(qry_px)[None, None]})[0][0]
+    fr = gprdata.encode(sess, gprdata.standardise(ref_px))
+    fq = gprdata.encode(sess, gprdata.standardise(qry_px))
     ts, d = shifts_tried(fr.shape[-1], resolution_m, stride)
     curves = correlation_curves(fr, fq, ts)
     fast = correlation_curves_batched(fr[None], fq[None], ts)[0]

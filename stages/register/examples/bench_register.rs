@@ -1,6 +1,6 @@
 //! The learned registration model's benchmark, as `tools/peer/bench_register.sh` runs it: on
-//! one thread, the encoder (standardisation, ONNX Runtime through `ort`, copy-out) per submap,
-//! and the correlation plus head (`Model::register`) per pair, each the median over many
+//! one thread, the encoder (standardisation, front end, ONNX Runtime through `ort`, copy-out)
+//! per submap, the front end alone, and the correlation plus head (`Model::register`) per pair, each the median over many
 //! iterations; prints a JSON report.
 //!
 //! usage: bench_register <submaps.f32> [--rows 201] [--cols 200] [--resolution-m 0.015]
@@ -17,6 +17,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use gprflow_register::engineered::SubmapView;
+use gprflow_register::front_end::FrontEndScratch;
 use gprflow_register::learned::{Features, Model};
 
 struct Args {
@@ -117,6 +118,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     std::hint::black_box(&scratch);
 
+    // the front end alone (part of the encoder's time above), on standardised copies
+    let front_end = model.encoder.front_end();
+    let mut front = FrontEndScratch::default();
+    let mut image: Vec<f32> = Vec::with_capacity(per);
+    let mut front_end_ms = Vec::with_capacity(iterations);
+    for s in submaps.iter().cycle().take(iterations) {
+        image.clear();
+        image.extend_from_slice(s.pixels);
+        let t = Instant::now();
+        front.apply(front_end, &mut image, args.rows, args.cols);
+        front_end_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box(&image);
+    }
+
     // correlation + head, and the correlation alone, per consecutive pair
     let pairs: Vec<(usize, usize)> = (0..features.len() - 1).map(|i| (i, i + 1)).collect();
     let mut registered = 0usize;
@@ -154,6 +169,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "shifts_tried": 2 * model.head.correlation_params(args.resolution_m).max_shift_cols(f.cols) + 1,
         "threads": 1,
         "encoder": summary(encode_ms),
+        "front_end": format!("{front_end:?}"),
+        "front_end_only": summary(front_end_ms),
         "correlation_and_head": summary(register_ms),
         "correlation_only": summary(correlate_ms),
         "pairs_registered": registered, "pairs_timed": iterations,

@@ -3,7 +3,8 @@
 //!
 //! - [`Encoder`]: the ONNX encoder (ONNX Runtime through `ort`, one thread) turns a submap in
 //!   ground order into features `K x h x w` ([`Features`]); the submap is standardised over the
-//!   whole image first (f64 mean and population std, stored as f32).
+//!   whole image first (f64 mean and population std, stored as f32), then goes through the
+//!   front end the model's metadata names ([`crate::front_end`]).
 //! - [`correlate`] / [`Correlator`]: the spatial correlation (§4.5.3) of reference and query
 //!   features, per channel the Pearson correlation of the shared block for every integer column
 //!   shift, its argmax refined by a parabola: the vector `v = [tau_1 .. tau_K, m_1 .. m_K]`.
@@ -25,6 +26,7 @@ use ort::value::TensorRef;
 use serde_json::{Map, Value};
 
 use crate::engineered::SubmapView;
+use crate::front_end::{FRONT_END_ITERATIONS_KEY, FRONT_END_KEY, FrontEnd, FrontEndScratch};
 use crate::{Error, Result};
 
 /// The ONNX Runtime library file this crate is built for.
@@ -165,6 +167,9 @@ impl Features {
 pub struct Encoder {
     session: Session,
     model_path: PathBuf,
+    /// What runs before the graph, as the model's metadata names it.
+    front_end: FrontEnd,
+    front_end_scratch: FrontEndScratch,
     /// The standardised submap, reused from call to call.
     input: Vec<f32>,
 }
@@ -173,6 +178,7 @@ impl std::fmt::Debug for Encoder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Encoder")
             .field("model_path", &self.model_path)
+            .field("front_end", &self.front_end)
             .finish_non_exhaustive()
     }
 }
@@ -183,8 +189,8 @@ impl Encoder {
     ///
     /// # Errors
     /// [`Error::OnnxRuntime`] when the library is missing or cannot be loaded; [`Error::Onnx`]
-    /// when the model is missing, is no ONNX model, or has not one float input `submap` and an
-    /// output `features`.
+    /// when the model is missing, is no ONNX model, has not one float input `submap` and an
+    /// output `features`, or names a front end this crate does not know.
     pub fn load(onnx_path: &Path, ort_library: Option<&Path>) -> Result<Encoder> {
         let env = runtime(&onnxruntime_library(ort_library))?;
         let failed = |message: String| Error::Onnx {
@@ -212,9 +218,21 @@ impl Encoder {
                 "outputs {outputs:?}, expected an output `{ENCODER_OUTPUT}` [1, K, h, w]"
             )));
         }
+        let front_end = {
+            let metadata = session
+                .metadata()
+                .map_err(|e| failed(format!("ONNX Runtime: metadata: {e}")))?;
+            FrontEnd::from_metadata(
+                metadata.custom(FRONT_END_KEY).as_deref(),
+                metadata.custom(FRONT_END_ITERATIONS_KEY).as_deref(),
+            )
+            .map_err(failed)?
+        };
         Ok(Encoder {
             session,
             model_path: onnx_path.to_path_buf(),
+            front_end,
+            front_end_scratch: FrontEndScratch::default(),
             input: Vec::new(),
         })
     }
@@ -222,6 +240,11 @@ impl Encoder {
     /// The model file.
     pub fn model_path(&self) -> &Path {
         &self.model_path
+    }
+
+    /// What runs before the graph.
+    pub fn front_end(&self) -> FrontEnd {
+        self.front_end
     }
 
     /// The features of `submap` (in ground order, not standardised).
@@ -243,6 +266,8 @@ impl Encoder {
     pub fn encode_into(&mut self, submap: &SubmapView<'_>, features: &mut Features) -> Result<()> {
         submap.check("submap")?;
         standardise(submap, &mut self.input)?;
+        self.front_end_scratch
+            .apply(self.front_end, &mut self.input, submap.rows, submap.cols);
         let failed = |message: String| Error::Onnx {
             model: self.model_path.clone(),
             message,

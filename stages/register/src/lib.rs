@@ -5,12 +5,14 @@
 //!
 //! - [`learned`]: the learned model (seed 000 §4.5-4.6, `tools/train/SPEC.md`): ONNX encoder,
 //!   spatial correlation of the features, regression head.
+//! - [`front_end`]: the encoder's weight-free front end, run before the ONNX graph.
 //! - [`candidates`]: loop-candidate selection from the current estimate (or the ground truth,
 //!   the oracle association used for evaluation).
 //! - `node` (feature `node`, default): the `register` stage.
 
 pub mod candidates;
 pub mod engineered;
+pub mod front_end;
 pub mod learned;
 #[cfg(feature = "node")]
 pub mod node;
