@@ -7,7 +7,8 @@ evaluation worlds) unless cached, builds their filtered submaps with graphs/subm
 decodes them (cache: ``--cache-dir``, keep it out of the repo), makes the registration pairs
 (tools/train/gprdata.py), pre-trains the convolutional autoencoder with an L1 reconstruction
 loss (§4.5.1), computes the spatial correlation vectors (§4.5.3), fits the linear and nonlinear
-heads with a Huber loss (§4.5.4), chooses ``share_threshold`` (§4.5.2), validates on the held-out
+heads with a Huber loss (§4.5.4), chooses ``share_threshold`` and the channel agreement check
+(§4.5.2), validates on the held-out
 scenario, and writes
 
 * stages/register/models/ground_encoding.onnx (the encoder),
@@ -21,7 +22,10 @@ Retrain (from the repository root; about 10 minutes on 2 CPU cores with the cach
     .venv-train/bin/python tools/train/train.py --cache-dir /tmp/train
 
 ``--data-only`` stops after simulating, building, decoding and caching the submaps (numpy and
-mcap only, no torch); ``--no-export`` trains and validates without writing the artefacts.
+mcap only, no torch); ``--no-export`` trains and validates without writing the artefacts;
+``--calibrate`` trains nothing: it chooses the committed heads' channel agreement check and
+``sigma_m`` again (as training does, from the committed ONNX encoder on the same pairs) and
+rewrites the fixtures' decisions.
 """
 
 import argparse
@@ -46,6 +50,11 @@ MIN_OVERLAP = 0.5
 HUBER_DELTA_M = 0.05
 NORM_EPS = 1e-6
 PARITY_TOL = 1e-5
+# the channel agreement check (SPEC "Do these two share features"): a channel agrees when its
+# own shift is within AGREEMENT_TOLERANCE_M of the head's; min_fraction is chosen so that no
+# training pair from another pass that passes both checks is off by more than AGREEMENT_WRONG_M
+AGREEMENT_TOLERANCE_M = 0.05
+AGREEMENT_WRONG_M = 0.10
 
 
 def log(*parts):
@@ -450,6 +459,55 @@ def choose_share_threshold(score_overlap, score_apart):
     return float(0.5 * (low + scores[end])), float(acc[start])
 
 
+def agreement_fraction(v, pred, k, tolerance_m=AGREEMENT_TOLERANCE_M):
+    """SPEC: the fraction of the ``k`` channels whose ``tau_k`` lies within ``tolerance_m`` of
+    the head's shift ``pred``, per pair."""
+    return (np.abs(np.asarray(v)[..., :k] - np.asarray(pred)[..., None]) <= tolerance_m).mean(-1)
+
+
+def choose_agreement(fraction, err_m, k):
+    """The smallest ``min_fraction`` (a multiple of 1/k) at which none of the given pairs that
+    reach it is off by more than ``AGREEMENT_WRONG_M``; 1 when there is none."""
+    wrong = np.abs(err_m) > AGREEMENT_WRONG_M
+    for j in range(k + 1):
+        if not np.any(wrong & (fraction >= j / k)):
+            return j / k
+    return 1.0
+
+
+def calibrate_heads(heads, v, pairs, is_val, shares, k):
+    """Each head's channel agreement check (chosen on the training scenarios' truth pairs from
+    other passes that pass ``share_threshold``) and ``sigma_m`` (held-out truth pairs that pass
+    both checks); returns what the checks do on the held-out pairs."""
+    truth = pairs.kind == "truth"
+    pick = truth & pairs.cross_pass & shares & ~is_val
+    val_truth = truth & is_val
+    report = {}
+    for kind, head in heads.items():
+        pred = apply_head(head, v)
+        frac = agreement_fraction(v, pred, k)
+        min_fraction = choose_agreement(frac[pick], pred[pick] - pairs.target_m[pick], k)
+        head["agreement"] = {
+            "tolerance_m": AGREEMENT_TOLERANCE_M, "min_fraction": min_fraction,
+            "rule": f"smallest multiple of 1/K at which no training truth pair from another pass that passes "
+                    f"share_threshold and it is off by more than {AGREEMENT_WRONG_M} m"}
+        passes = shares & (frac >= min_fraction)
+        res = pred[val_truth & passes] - pairs.target_m[val_truth & passes]
+        head["sigma_m"] = float(1.4826 * np.median(np.abs(res)))
+        cross = val_truth & pairs.cross_pass
+        report[kind] = {"min_fraction": round(min_fraction, 4),
+                        "registered_fraction": round(float(passes[val_truth].mean()), 4),
+                        "cross_pass_registered_fraction": round(float(passes[cross].mean()), 4),
+                        "cross_pass_registered": errors_cm(pred[cross & passes], pairs.target_m[cross & passes]),
+                        "cross_pass_shared": errors_cm(pred[cross & shares], pairs.target_m[cross & shares]),
+                        "apart_registered_fraction": round(float(passes[is_val & (pairs.kind == "apart")].mean()), 4)}
+        log(f"{kind}: agreement min_fraction {min_fraction:.4f}, sigma_m {head['sigma_m']:.4f}; held out other-pass "
+            f"pairs passing share_threshold {report[kind]['cross_pass_shared']['rmse_cm']:.2f} cm RMSE, passing both "
+            f"{report[kind]['cross_pass_registered']['rmse_cm']:.2f} cm on "
+            f"{100 * report[kind]['cross_pass_registered_fraction']:.1f} % of them")
+    return report
+
+
 def errors_cm(pred, target):
     e = (np.asarray(pred) - np.asarray(target)) * 100.0
     return {"mae_cm": round(float(np.abs(e).mean()), 3), "rmse_cm": round(float(np.sqrt((e * e).mean())), 3),
@@ -491,6 +549,9 @@ def parse_args():
     p.add_argument("--data-only", action="store_true",
                    help="simulate, build, decode and cache the submaps, then stop (no torch needed)")
     p.add_argument("--no-export", action="store_true", help="train and validate, write nothing")
+    p.add_argument("--calibrate", action="store_true",
+                   help="no training: choose the committed heads' agreement check and sigma_m again from the "
+                        "committed encoder on the same pairs, and rewrite the fixtures' decisions")
     p.add_argument("--models-dir", default=MODELS_DIR)
     p.add_argument("--fixtures-dir", default=FIXTURES_DIR)
     return p.parse_args()
@@ -512,25 +573,9 @@ def scenario_pairs(runs, rng, per_submap):
     return gprdata.Pairs.concat([truth, homog])
 
 
-def main():
-    args = parse_args()
-    os.makedirs(args.cache_dir, exist_ok=True)
-    scenarios = args.train_scenarios + [args.val_scenario]
-    if any(not s.startswith("training_") for s in scenarios):
-        sys.exit("only the simulator's training scenarios (training_*) may be used")
-    if args.data_only:
-        for s in scenarios:
-            load_scenario(args, s)
-        return
-
-    import torch
-
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-    rng = np.random.default_rng(args.seed)
-    started = time.time()
-
-    # data: runs (flat list), standardised images, pairs per scenario
+def load_data(args, scenarios, rng):
+    """Runs (flat list), pairs per scenario (the first use of ``rng``), which pairs are held
+    out, and the standardised images."""
     runs, pairs_parts = [], []
     for s in scenarios:
         sr = load_scenario(args, s)
@@ -552,6 +597,82 @@ def main():
         f"(cross-pass {int(((pairs.kind == 'truth') & ~is_val & pairs.cross_pass).sum())}), "
         f"homography {int(((pairs.kind == 'homography') & ~is_val).sum())}, "
         f"apart {int(((pairs.kind == 'apart') & ~is_val).sum())}")
+    return runs, pairs, is_val, val_run, resolution_m, images
+
+
+def calibrate(args):
+    """``--calibrate``: the committed encoder (ONNX, with its front end) and heads on the same
+    pairs as training; rewrites each head's agreement check and ``sigma_m`` (nothing else) and
+    the parity fixtures' decisions."""
+    import onnxruntime as ort
+
+    scenarios = args.train_scenarios + [args.val_scenario]
+    rng = np.random.default_rng(args.seed)
+    runs, pairs, is_val, _, resolution_m, images = load_data(args, scenarios, rng)
+    sess = session(os.path.join(args.models_dir, ONNX_NAME))
+    front = gprdata.front_end_of(sess)
+    t = time.time()
+    features = [np.stack([gprdata.encode(sess, x, front) for x in im]) for im in images]
+    log(f"encoded {sum(len(f) for f in features)} submaps with onnxruntime {ort.__version__} ({time.time() - t:.0f} s)")
+    names = {"linear": "ground_encoding.head.json", "nonlinear": "ground_encoding.nonlinear.json"}
+    heads = {kind: json.load(open(os.path.join(args.models_dir, name))) for kind, name in names.items()}
+    k = heads["linear"]["channels"]
+    t = time.time()
+    v = correlation_vectors(features, pairs, resolution_m, heads["linear"]["column_stride"])
+    log(f"correlation vectors {v.shape} ({time.time() - t:.0f} s)")
+    shares = v[:, k:].mean(1) >= heads["linear"]["share_threshold"]
+    report = calibrate_heads(heads, v, pairs, is_val, shares, k)
+    for kind, head in heads.items():
+        head["training"] = dict(head["training"], agreement=report,
+                                calibrated={"date": datetime.date.today().isoformat(),
+                                            "command": "python " + " ".join(["tools/train/train.py"] + sys.argv[1:])})
+        head["training"]["sigma_rule"] = ("1.4826 x median |residual| on held-out truth pairs that pass share_threshold "
+                                          "and the agreement check")
+        with open(os.path.join(args.models_dir, names[kind]), "w") as f:
+            json.dump(head, f, indent=1)
+            f.write("\n")
+    manifest_path = os.path.join(args.fixtures_dir, "manifest.json")
+    manifest = json.load(open(manifest_path))
+    for case in manifest["cases"]:
+        case.update(fixture_decision(heads["linear"], np.asarray(case["correlation"]), case["linear_m"]))
+    with open(manifest_path, "w") as f:
+        json.dump(manifest, f, indent=1)
+        f.write("\n")
+    log(f"wrote {', '.join(names.values())} and {manifest_path}")
+
+
+def fixture_decision(head, v, linear_m):
+    """A fixture case's decision fields: ``shares`` (share_threshold), ``agreement`` (the
+    fraction of channels agreeing with the linear head) and ``registered`` (both checks)."""
+    k = head["channels"]
+    shares = bool(v[k:].mean() >= head["share_threshold"])
+    frac = float(agreement_fraction(v, np.asarray(linear_m), k))
+    check = head.get("agreement")
+    return {"shares": shares, "agreement": frac,
+            "registered": shares and (check is None or frac >= check["min_fraction"])}
+
+
+def main():
+    args = parse_args()
+    os.makedirs(args.cache_dir, exist_ok=True)
+    scenarios = args.train_scenarios + [args.val_scenario]
+    if any(not s.startswith("training_") for s in scenarios):
+        sys.exit("only the simulator's training scenarios (training_*) may be used")
+    if args.data_only:
+        for s in scenarios:
+            load_scenario(args, s)
+        return
+    if args.calibrate:
+        calibrate(args)
+        return
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    started = time.time()
+    runs, pairs, is_val, val_run, resolution_m, images = load_data(args, scenarios, rng)
 
     # §4.5.1: autoencoder on the training scenarios' submaps
     train_images = np.concatenate([im for im, v in zip(images, val_run) if not v])
@@ -604,7 +725,8 @@ def main():
                 "head_loss": f"huber delta {HUBER_DELTA_M} m",
                 "share_threshold": final["share"],
                 "validation_held_out_truth_pairs": final["report"],
-                "sigma_rule": "1.4826 x median |residual| on held-out truth pairs that pass share_threshold",
+                "sigma_rule": "1.4826 x median |residual| on held-out truth pairs that pass share_threshold and "
+                              "the agreement check",
                 "date": datetime.date.today().isoformat(),
                 "command": "python " + " ".join(["tools/train/train.py"] + sys.argv[1:]),
                 "seed": args.seed}
@@ -675,10 +797,9 @@ def fit_and_validate(encoder, images, pairs, is_val, resolution_m, engineered, a
             + f" cm (MAE/RMSE, {report[name]['zeroth']['pairs']} pairs)")
     log(f"held out: {report['shared_fraction']:.3f} of truth pairs pass share_threshold, "
         f"{report['apart_rejected_fraction']:.3f} of non-overlapping pairs rejected")
-    for kind, head in heads.items():
-        res = preds[kind][val_truth & shares] - pairs.target_m[val_truth & shares]
-        head.update(share_threshold=share_threshold, sigma_m=float(1.4826 * np.median(np.abs(res))), zeroth_m=zeroth)
-        log(f"{kind} sigma_m {head['sigma_m']:.4f}")
+    for head in heads.values():
+        head.update(share_threshold=share_threshold, zeroth_m=zeroth)
+    report["agreement"] = calibrate_heads(heads, v, pairs, is_val, shares, k)
     share = {"train_balanced_accuracy": round(share_acc, 4), "held_out_balanced_accuracy": round(float(val_share), 4)}
     return {"heads": heads, "report": report, "share": share}
 
@@ -847,8 +968,8 @@ RIGHT_M = 0.03
 def registered_right(entry):
     """Registered within ``RIGHT_M`` of the truth, or rejected when there is no truth."""
     if entry["target_m"] is None:
-        return not entry["shares"]
-    return entry["shares"] and abs(entry["linear_m"] - entry["target_m"]) < RIGHT_M
+        return not entry["registered"]
+    return entry["registered"] and abs(entry["linear_m"] - entry["target_m"]) < RIGHT_M
 
 
 def fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non):
@@ -876,8 +997,8 @@ def fixture_case(sess, runs, pairs, j, resolution_m, stride, lin, non):
              "features_shape": [int(s) for s in fr.shape],
              "target_m": None if np.isnan(target) else float(target),
              "correlation": v.tolist(), "mean_peak": float(v[k:].mean()),
-             "shares": bool(v[k:].mean() >= lin["share_threshold"]),
              "linear_m": float(apply_head(lin, v)), "nonlinear_m": float(apply_head(non, v))}
+    entry.update(fixture_decision(lin, v, entry["linear_m"]))
     arrays = {"reference": ref_px, "query": qry_px, "reference_features": fr, "query_features": fq}
     return entry, arrays
 

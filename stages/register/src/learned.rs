@@ -810,6 +810,47 @@ impl HeadLayer {
     }
 }
 
+/// The channel agreement check (SPEC "Do these two share features"): a pair is registered only
+/// when at least `min_fraction` of the channels put their own shift `tau_k` within
+/// `tolerance_m` of the head's shift.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Agreement {
+    /// Largest `|tau_k - shift|` of an agreeing channel, m.
+    pub tolerance_m: f64,
+    /// Smallest fraction of agreeing channels, in `[0, 1]`.
+    pub min_fraction: f64,
+}
+
+impl Agreement {
+    fn parse(rd: &HeadReader<'_>, value: &Value) -> Result<Agreement> {
+        let obj = rd.object(value, "agreement")?;
+        rd.only_keys(obj, "agreement", &["tolerance_m", "min_fraction", "rule"])?;
+        let tolerance_m = rd.number(rd.field(obj, "agreement", "tolerance_m")?, "agreement.tolerance_m")?;
+        if tolerance_m <= 0.0 {
+            return Err(rd.error("agreement.tolerance_m", format!("{tolerance_m}, expected > 0")));
+        }
+        let min_fraction = rd.number(rd.field(obj, "agreement", "min_fraction")?, "agreement.min_fraction")?;
+        if !(0.0..=1.0).contains(&min_fraction) {
+            return Err(rd.error("agreement.min_fraction", format!("{min_fraction}, expected in [0, 1]")));
+        }
+        Ok(Agreement {
+            tolerance_m,
+            min_fraction,
+        })
+    }
+
+    /// The fraction of the channels of `corr` whose `tau_k` lies within `tolerance_m` of
+    /// `shift_m`.
+    pub fn fraction(&self, corr: &CorrVector, shift_m: f64) -> f64 {
+        let tau = corr.tau_m();
+        if tau.is_empty() {
+            return 0.0;
+        }
+        let agreeing = tau.iter().filter(|&&t| (t - shift_m).abs() <= self.tolerance_m).count();
+        agreeing as f64 / tau.len() as f64
+    }
+}
+
 /// The regression head and the model's constants (SPEC "Head"), as read from its JSON file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Head {
@@ -825,6 +866,8 @@ pub struct Head {
     pub min_overlap: f64,
     /// Pairs whose `mean_k m_k` is below this share no features.
     pub share_threshold: f64,
+    /// The channel agreement check, when the head has one.
+    pub agreement: Option<Agreement>,
     /// Robust standard deviation of the head on held-out pairs, m.
     pub sigma_m: f64,
     /// Mean target of the training pairs (the zeroth-order model), m.
@@ -932,6 +975,7 @@ const HEAD_KEYS: &[&str] = &[
     "normalise",
     "layers",
     "share_threshold",
+    "agreement",
     "sigma_m",
     "zeroth_m",
     "training",
@@ -993,6 +1037,10 @@ impl Head {
         }
         let layers = Head::parse_layers(&rd, rd.field(obj, "", "layers")?, kind, inputs)?;
         let share_threshold = rd.number(rd.field(obj, "", "share_threshold")?, "share_threshold")?;
+        let agreement = match obj.get("agreement") {
+            None | Some(Value::Null) => None,
+            Some(value) => Some(Agreement::parse(&rd, value)?),
+        };
         let sigma_m = rd.number(rd.field(obj, "", "sigma_m")?, "sigma_m")?;
         if sigma_m <= 0.0 {
             return Err(rd.error("sigma_m", format!("{sigma_m}, expected > 0")));
@@ -1005,6 +1053,7 @@ impl Head {
             max_shift_m,
             min_overlap,
             share_threshold,
+            agreement,
             sigma_m,
             zeroth_m,
             training: obj.get("training").cloned().unwrap_or(Value::Null),
@@ -1148,6 +1197,9 @@ pub struct LearnedMatch {
     pub shift_m: f64,
     /// `mean_k m_k`, in -1..=1: how much the two share features.
     pub share_score: f64,
+    /// The fraction of channels agreeing with `shift_m` (1 when the head has no agreement
+    /// check).
+    pub agreement: f64,
     /// `sigma_m^2`, m².
     pub variance_m2: f64,
     /// The correlation vector the head took, `[tau_1 .. tau_K, m_1 .. m_K]`.
@@ -1233,7 +1285,8 @@ impl Model {
     }
 
     /// Registers `query` on `reference`: `None` when they share no features
-    /// (`mean_k m_k < share_threshold`), else the head's shift and `sigma_m^2`.
+    /// (`mean_k m_k < share_threshold`, or, where the head has an [`Agreement`] check, too few
+    /// channels agree with the head's shift), else the head's shift and `sigma_m^2`.
     ///
     /// # Errors
     /// See [`Model::correlate`].
@@ -1248,9 +1301,21 @@ impl Model {
         if share_score < self.head.share_threshold {
             return Ok(None);
         }
+        let shift_m = self.head.predict(&corr.values);
+        let agreement = match self.head.agreement {
+            Some(check) => {
+                let fraction = check.fraction(&corr, shift_m);
+                if fraction < check.min_fraction {
+                    return Ok(None);
+                }
+                fraction
+            }
+            None => 1.0,
+        };
         Ok(Some(LearnedMatch {
-            shift_m: self.head.predict(&corr.values),
+            shift_m,
             share_score,
+            agreement,
             variance_m2: self.head.sigma_m * self.head.sigma_m,
             corr: corr.values,
         }))
@@ -1508,6 +1573,32 @@ mod tests {
     }
 
     #[test]
+    fn the_agreement_check_counts_the_channels_near_the_shift() {
+        let corr = CorrVector {
+            values: vec![0.10, 0.12, 0.50, -0.30, 0.9, 0.9, 0.9, 0.9],
+            max_shift_cols: 10,
+        };
+        let check = Agreement {
+            tolerance_m: 0.05,
+            min_fraction: 0.5,
+        };
+        assert_eq!(check.fraction(&corr, 0.11), 0.5);
+        assert_eq!(check.fraction(&corr, 0.52), 0.25);
+        assert_eq!(check.fraction(&corr, 2.0), 0.0);
+        let path = Path::new("h.json");
+        let one = r#"[{"weights": [[0.5, 0.5, 0, 1]], "bias": [0.25], "activation": "none"}]"#;
+        let with = head_json("linear", one).replace(
+            "\"share_threshold\": 0.3",
+            "\"share_threshold\": 0.3, \"agreement\": {\"tolerance_m\": 0.05, \"min_fraction\": 0.5, \"rule\": \"r\"}",
+        );
+        assert_eq!(Head::parse(&with, path).expect("valid").agreement, Some(check));
+        assert_eq!(
+            Head::parse(&head_json("linear", one), path).expect("valid").agreement,
+            None
+        );
+    }
+
+    #[test]
     fn malformed_heads_name_the_file_and_the_field() {
         let path = Path::new("models/ground_encoding.head.json");
         let one = r#"[{"weights": [[0.5, 0.5, 0, 1]], "bias": [0.25], "activation": "none"}]"#;
@@ -1563,6 +1654,27 @@ mod tests {
             (
                 head_json("linear", one).replace("\"share_threshold\": 0.3", "\"share_threshold\": \"x\""),
                 "share_threshold: expected a finite number",
+            ),
+            (
+                head_json("linear", one).replace(
+                    "\"share_threshold\": 0.3",
+                    "\"share_threshold\": 0.3, \"agreement\": {\"tolerance_m\": 0.05, \"min_fraction\": 1.5}",
+                ),
+                "agreement.min_fraction: 1.5, expected in [0, 1]",
+            ),
+            (
+                head_json("linear", one).replace(
+                    "\"share_threshold\": 0.3",
+                    "\"share_threshold\": 0.3, \"agreement\": {\"min_fraction\": 0.5}",
+                ),
+                "agreement.tolerance_m: missing",
+            ),
+            (
+                head_json("linear", one).replace(
+                    "\"share_threshold\": 0.3",
+                    "\"share_threshold\": 0.3, \"agreement\": {\"tolerance_m\": 0.05, \"min_fraction\": 0.5, \"x\": 1}",
+                ),
+                "agreement.x: unknown field",
             ),
             ("[1, 2".to_string(), "(file): not JSON"),
             ("[]".to_string(), "(file): expected an object"),

@@ -510,10 +510,14 @@ impl Stage for RegisterStage {
             tracing::info!(
                 model = %params.model.display(),
                 head = %params.head.display(),
-                "register: learned model, {} channels, column stride {}, share threshold {}, sigma {} m",
+                "register: learned model, {} channels, column stride {}, share threshold {}, agreement {}, sigma {} m",
                 m.head.channels,
                 m.head.column_stride,
                 m.head.share_threshold,
+                m.head.agreement.map_or("none".to_string(), |a| format!(
+                    "{:.3} of the channels within {} m",
+                    a.min_fraction, a.tolerance_m
+                )),
                 m.head.sigma_m
             );
         }

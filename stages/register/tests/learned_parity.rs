@@ -173,11 +173,19 @@ fn check_manifest(manifest: &Path) {
             tolerance,
         );
         let registered = model.register(&ours[0], &ours[1], resolution_m).expect("register");
+        // `registered`: both checks (share threshold and channel agreement); fixtures of heads
+        // without an agreement check have only `shares`
+        let want = case.get("registered").unwrap_or(&case["shares"]);
         assert_eq!(
             registered.is_some(),
-            case["shares"].as_bool().expect("shares"),
-            "{name}: shares"
+            want.as_bool().expect("registered"),
+            "{name}: registered"
         );
+        if let (Some(check), Some(want_agreement)) = (model.head.agreement, case.get("agreement")) {
+            let fraction = check.fraction(&ours_v, want_linear);
+            let want_agreement = want_agreement.as_f64().expect("agreement");
+            assert_eq!(fraction, want_agreement, "{name}: agreement");
+        }
         if let Some(r) = registered {
             assert!(
                 (r.shift_m - want_linear).abs() <= END_TO_END_M,
