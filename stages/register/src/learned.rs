@@ -1296,30 +1296,50 @@ impl Model {
         query: &Features,
         resolution_m: f64,
     ) -> Result<Option<LearnedMatch>> {
+        let (found, refusal) = self.assess(reference, query, resolution_m)?;
+        Ok(refusal.is_none().then_some(found))
+    }
+
+    /// What [`Model::register`] decides, with its numbers either way: the match (shift, share
+    /// score, agreement) and why it was refused, if it was.
+    ///
+    /// # Errors
+    /// See [`Model::correlate`].
+    pub fn assess(
+        &mut self,
+        reference: &Features,
+        query: &Features,
+        resolution_m: f64,
+    ) -> Result<(LearnedMatch, Option<Refusal>)> {
         let corr = self.correlate(reference, query, resolution_m)?;
         let share_score = corr.share_score();
-        if share_score < self.head.share_threshold {
-            return Ok(None);
-        }
         let shift_m = self.head.predict(&corr.values);
-        let agreement = match self.head.agreement {
-            Some(check) => {
-                let fraction = check.fraction(&corr, shift_m);
-                if fraction < check.min_fraction {
-                    return Ok(None);
-                }
-                fraction
-            }
-            None => 1.0,
+        let agreement = self.head.agreement.map_or(1.0, |check| check.fraction(&corr, shift_m));
+        let refusal = if share_score < self.head.share_threshold {
+            Some(Refusal::NoSharedFeatures)
+        } else if self.head.agreement.is_some_and(|check| agreement < check.min_fraction) {
+            Some(Refusal::ChannelsDisagree)
+        } else {
+            None
         };
-        Ok(Some(LearnedMatch {
+        let found = LearnedMatch {
             shift_m,
             share_score,
             agreement,
             variance_m2: self.head.sigma_m * self.head.sigma_m,
             corr: corr.values,
-        }))
+        };
+        Ok((found, refusal))
     }
+}
+
+/// Why the learned model refused a pair.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// `mean_k m_k < share_threshold`.
+    NoSharedFeatures,
+    /// Fewer than the agreement check's `min_fraction` of the channels agree with the shift.
+    ChannelsDisagree,
 }
 
 #[cfg(test)]

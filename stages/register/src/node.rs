@@ -377,10 +377,21 @@ impl RegisterStage {
                     return Ok(None);
                 };
                 learned_sigma = Some(model.head.sigma_m);
-                match model.register(fr, fq, q.resolution_m).map_err(StageError::failed)? {
-                    Some(m) => (m.shift_m, m.share_score),
-                    None => return Ok(None),
+                let (m, refusal) = model.assess(fr, fq, q.resolution_m).map_err(StageError::failed)?;
+                if let Some(why) = refusal {
+                    tracing::debug!(
+                        reference = r.id,
+                        query = q.id,
+                        reference_stamp_ns = r.anchor.stamp_ns,
+                        query_stamp_ns = q.anchor.stamp_ns,
+                        shift_m = m.shift_m,
+                        share_score = m.share_score,
+                        agreement = m.agreement,
+                        "not registered: {why:?}"
+                    );
+                    return Ok(None);
                 }
+                (m.shift_m, m.share_score)
             }
             Method::Zeroth => match self.zeroth_m {
                 Some(z) => (z, 0.0),
