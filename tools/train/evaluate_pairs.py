@@ -66,6 +66,8 @@ def evaluate(args, scenario, run):
     v[sel] = train.correlation_vectors([feats], pairs.select(sel), resolution_m, head["column_stride"])
     learned = train.apply_head(head, v)
     shares = v[:, k:].mean(1) >= head["share_threshold"]
+    check = head.get("agreement")
+    registered = shares & (train.agreement_fraction(v, learned, k) >= check["min_fraction"] if check else True)
     target = pairs.target_m
     gate = cross & (eng_peak >= ENGINEERED_MIN_SCORE)
     return {
@@ -78,7 +80,11 @@ def evaluate(args, scenario, run):
         "learned_over_10cm": float(np.mean(np.abs(learned[cross] - target[cross]) > 0.1)),
         "learned_shared_pass": float((cross & shares).sum() / max(1, cross.sum())),
         "learned_shared_rmse_cm": rmse_cm(learned[cross & shares] - target[cross & shares]),
-        "apart_rejected": float((~shares[apart]).mean()) if apart.any() else float("nan"),
+        "learned_registered_pass": float((cross & registered).sum() / max(1, cross.sum())),
+        "learned_registered_rmse_cm": rmse_cm(learned[cross & registered] - target[cross & registered]),
+        "learned_registered_max_cm": float(np.abs(learned[cross & registered] - target[cross & registered]).max() * 100)
+        if (cross & registered).any() else float("nan"),
+        "apart_rejected": float((~registered[apart]).mean()) if apart.any() else float("nan"),
     }
 
 
@@ -106,13 +112,15 @@ def main():
     if args.json:
         return
     print("| run | pairs | engineered | engineered >10 cm | engineered, peak >= 0.3 | learned | learned >10 cm "
-          "| learned, shared | non-overlapping rejected |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| learned, shared | learned, shared and agreeing (max) | non-overlapping rejected |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['world']} | {r['pairs']} | {r['engineered_rmse_cm']:.1f} | {100 * r['engineered_over_10cm']:.0f} % "
               f"| {r['engineered_gated_rmse_cm']:.1f} ({100 * r['engineered_gated_pass']:.0f} %) "
               f"| {r['learned_rmse_cm']:.1f} | {100 * r['learned_over_10cm']:.0f} % "
               f"| {r['learned_shared_rmse_cm']:.1f} ({100 * r['learned_shared_pass']:.0f} %) "
+              f"| {r['learned_registered_rmse_cm']:.1f} ({100 * r['learned_registered_pass']:.0f} %, "
+              f"{r['learned_registered_max_cm']:.1f}) "
               f"| {100 * r['apart_rejected']:.0f} % |")
 
 
