@@ -127,7 +127,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         image.clear();
         image.extend_from_slice(s.pixels);
         let t = Instant::now();
-        front.apply(front_end, &mut image, args.rows, args.cols);
+        front.apply(front_end, &mut image, args.rows, args.cols)?;
         front_end_ms.push(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(&image);
     }

@@ -6,6 +6,8 @@
 //! iteration from a flat column vector, then standardised again. A horizontal band whose
 //! strength varies along the track (uneven ground contact) is such a component.
 
+use crate::{Error, Result};
+
 /// Model metadata key naming the front end: `none` (or absent) or `band`.
 pub const FRONT_END_KEY: &str = "gprflow.front_end";
 
@@ -37,7 +39,7 @@ impl FrontEnd {
     /// # Errors
     /// A message naming the key and the value when the name is unknown or the iteration count
     /// is not a whole number from 1 to 1000.
-    pub fn from_metadata(name: Option<&str>, iterations: Option<&str>) -> Result<FrontEnd, String> {
+    pub fn from_metadata(name: Option<&str>, iterations: Option<&str>) -> std::result::Result<FrontEnd, String> {
         match name.map(str::trim) {
             None | Some("none") => Ok(FrontEnd::None),
             Some("band") => {
@@ -71,8 +73,16 @@ pub struct FrontEndScratch {
 impl FrontEndScratch {
     /// Applies `front_end` in place to `image` (`rows x cols`, row-major, finite). Computed in
     /// f32 (as the graph it was trained in did), with the norm, mean and variance summed in f64.
-    pub fn apply(&mut self, front_end: FrontEnd, image: &mut [f32], rows: usize, cols: usize) {
-        debug_assert_eq!(image.len(), rows * cols);
+    ///
+    /// # Errors
+    /// [`Error::Shape`] when `image` does not hold `rows x cols` values (it is left as it was).
+    pub fn apply(&mut self, front_end: FrontEnd, image: &mut [f32], rows: usize, cols: usize) -> Result<()> {
+        if rows.checked_mul(cols) != Some(image.len()) {
+            return Err(Error::Shape(format!(
+                "front end: {} values are not a {rows} x {cols} image",
+                image.len()
+            )));
+        }
         match front_end {
             FrontEnd::None => {}
             FrontEnd::Band { iterations } => {
@@ -80,11 +90,12 @@ impl FrontEndScratch {
                 if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
                     // SAFETY: the CPU has AVX2 and FMA, checked just above.
                     unsafe { self.remove_band_avx2(image, rows, cols, iterations) };
-                    return;
+                    return Ok(());
                 }
                 self.remove_band::<false>(image, rows, cols, iterations);
             }
         }
+        Ok(())
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -281,7 +292,9 @@ mod tests {
         let mut x = image(rows, cols);
         let v = leading_component(&x, rows, cols);
         let mut scratch = FrontEndScratch::default();
-        scratch.apply(FrontEnd::Band { iterations: 60 }, &mut x, rows, cols);
+        scratch
+            .apply(FrontEnd::Band { iterations: 60 }, &mut x, rows, cols)
+            .expect("shape");
         let n = x.len() as f64;
         let mean = x.iter().map(|&p| f64::from(p)).sum::<f64>() / n;
         let var = x.iter().map(|&p| (f64::from(p) - mean).powi(2)).sum::<f64>() / n;
@@ -320,7 +333,9 @@ mod tests {
         let mut fused = image(rows, cols);
         let mut portable = fused.clone();
         let mut scratch = FrontEndScratch::default();
-        scratch.apply(FrontEnd::Band { iterations: 6 }, &mut fused, rows, cols);
+        scratch
+            .apply(FrontEnd::Band { iterations: 6 }, &mut fused, rows, cols)
+            .expect("shape");
         scratch.remove_band::<false>(&mut portable, rows, cols, 6);
         let worst = fused
             .iter()
@@ -331,13 +346,20 @@ mod tests {
     }
 
     #[test]
-    fn none_leaves_the_image_alone_and_empty_images_are_no_trouble() {
+    fn none_leaves_the_image_alone_and_wrong_shapes_are_refused() {
         let mut x = image(5, 7);
         let before = x.clone();
         let mut scratch = FrontEndScratch::default();
-        scratch.apply(FrontEnd::None, &mut x, 5, 7);
+        scratch.apply(FrontEnd::None, &mut x, 5, 7).expect("shape");
         assert_eq!(x, before);
-        scratch.apply(FrontEnd::Band { iterations: 3 }, &mut [], 0, 0);
+        scratch
+            .apply(FrontEnd::Band { iterations: 3 }, &mut [], 0, 0)
+            .expect("empty");
+        let e = scratch
+            .apply(FrontEnd::Band { iterations: 3 }, &mut x, 6, 7)
+            .expect_err("wrong shape");
+        assert!(e.to_string().contains("35 values are not a 6 x 7 image"), "{e}");
+        assert_eq!(x, before);
     }
 
     #[test]

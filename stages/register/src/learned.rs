@@ -267,7 +267,7 @@ impl Encoder {
         submap.check("submap")?;
         standardise(submap, &mut self.input)?;
         self.front_end_scratch
-            .apply(self.front_end, &mut self.input, submap.rows, submap.cols);
+            .apply(self.front_end, &mut self.input, submap.rows, submap.cols)?;
         let failed = |message: String| Error::Onnx {
             model: self.model_path.clone(),
             message,
