@@ -46,11 +46,6 @@ def generate(out, n, rows, cols):
     (30.0 * subs + 5.0).astype("<f4").tofile(out)
 
 
-def standardise(image):
-    s = np.asarray(image, dtype=np.float64)
-    return ((s - s.mean()) / (s.std() + 1e-6)).astype(np.float32)
-
-
 def timed(fn, iterations, warmup=50):
     for _ in range(warmup):
         fn()
@@ -77,12 +72,12 @@ def run(args):
     import gprdata  # numpy only: the model's front end (SPEC "Front end")
 
     front = gprdata.front_end_of(sess)
-    inputs = [gprdata.apply_front_end(front, standardise(s))[None, None] for s in subs]
+    inputs = [gprdata.apply_front_end(front, gprdata.standardise(s))[None, None] for s in subs]
     feats = [sess.run(None, {"submap": x})[0][0] for x in inputs]
     it = iter(range(10 ** 9))
     run_only = timed(lambda: sess.run(None, {"submap": inputs[next(it) % len(inputs)]}), args.iterations)
     with_std = timed(lambda: sess.run(None, {"submap": gprdata.apply_front_end(
-        front, standardise(subs[next(it) % len(subs)]))[None, None]}), args.iterations)
+        front, gprdata.standardise(subs[next(it) % len(subs)]))[None, None]}), args.iterations)
     report = {"onnxruntime": ort.__version__, "threads": 1, "features": list(feats[0].shape),
               "front_end": list(front), "encoder_run": run_only, "encoder_standardise_and_run": with_std}
     if args.ours:

@@ -65,9 +65,7 @@ def evaluate(args, scenario, run):
     v = np.zeros((len(pairs), 2 * k))
     v[sel] = train.correlation_vectors([feats], pairs.select(sel), resolution_m, head["column_stride"])
     learned = train.apply_head(head, v)
-    shares = v[:, k:].mean(1) >= head["share_threshold"]
-    check = head.get("agreement")
-    registered = shares & (train.agreement_fraction(v, learned, k) >= check["min_fraction"] if check else True)
+    shares, _, registered = train.registration_decision(head, v, learned)
     target = pairs.target_m
     gate = cross & (eng_peak >= ENGINEERED_MIN_SCORE)
     return {

@@ -307,6 +307,13 @@ def front_end_of(sess):
     raise ValueError(f"unknown front end {name!r}")
 
 
+def set_front_end(model, front):
+    """Names ``front`` (see :func:`front_end_of`) in an ``onnx.ModelProto``'s metadata."""
+    for key, value in ((FRONT_END_KEY, front[0]), (FRONT_END_ITERATIONS_KEY, str(front[1]))):
+        p = model.metadata_props.add()
+        p.key, p.value = key, value
+
+
 def apply_front_end(front, image):
     """``image`` (standardised ``rows x cols``) through ``front`` (see :func:`front_end_of`), in
     f64, as f32: for ``band`` the largest singular component (power iteration from a flat column

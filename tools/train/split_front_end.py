@@ -49,9 +49,7 @@ def split(model, iterations):
             needed.update(n.input)
     del g.node[:]
     g.node.extend(reversed(kept))
-    for key, value in ((gprdata.FRONT_END_KEY, "band"), (gprdata.FRONT_END_ITERATIONS_KEY, str(iterations))):
-        p = m.metadata_props.add()
-        p.key, p.value = key, value
+    gprdata.set_front_end(m, ("band", iterations))
     onnx.checker.check_model(m)
     return m
 

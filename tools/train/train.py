@@ -44,6 +44,7 @@ import gprdata  # noqa: E402
 MODELS_DIR = "stages/register/models"
 FIXTURES_DIR = "stages/register/tests/fixtures/learned"
 ONNX_NAME = "ground_encoding.onnx"
+HEAD_NAMES = {"linear": "ground_encoding.head.json", "nonlinear": "ground_encoding.nonlinear.json"}
 OPSET = 17
 MAX_SHIFT_M = 1.5
 MIN_OVERLAP = 0.5
@@ -475,18 +476,35 @@ def choose_agreement(fraction, err_m, k):
     return 1.0
 
 
-def calibrate_heads(heads, v, pairs, is_val, shares, k):
+def registration_decision(head, v, pred):
+    """SPEC "Do these two share features", per pair: ``(shares, agreement fraction,
+    registered)`` for correlation vectors ``v`` and the head's shifts ``pred``."""
+    k = head["channels"]
+    v = np.asarray(v)
+    shares = v[..., k:].mean(-1) >= head["share_threshold"]
+    frac = agreement_fraction(v, pred, k)
+    check = head.get("agreement")
+    return shares, frac, shares & (True if check is None else frac >= check["min_fraction"])
+
+
+def write_json(path, obj):
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=1)
+        f.write("\n")
+
+
+def calibrate_heads(heads, v, pairs, is_val):
     """Each head's channel agreement check (chosen on the training scenarios' truth pairs from
     other passes that pass ``share_threshold``) and ``sigma_m`` (held-out truth pairs that pass
     both checks); returns what the checks do on the held-out pairs."""
     truth = pairs.kind == "truth"
-    pick = truth & pairs.cross_pass & shares & ~is_val
     val_truth = truth & is_val
     report = {}
     for kind, head in heads.items():
         pred = apply_head(head, v)
-        frac = agreement_fraction(v, pred, k)
-        min_fraction = choose_agreement(frac[pick], pred[pick] - pairs.target_m[pick], k)
+        shares, frac, _ = registration_decision(head, v, pred)
+        pick = truth & pairs.cross_pass & shares & ~is_val
+        min_fraction = choose_agreement(frac[pick], pred[pick] - pairs.target_m[pick], head["channels"])
         head["agreement"] = {
             "tolerance_m": AGREEMENT_TOLERANCE_M, "min_fraction": min_fraction,
             "rule": f"smallest multiple of 1/K at which no training truth pair from another pass that passes "
@@ -600,13 +618,12 @@ def load_data(args, scenarios, rng):
     return runs, pairs, is_val, val_run, resolution_m, images
 
 
-def calibrate(args):
+def calibrate(args, scenarios):
     """``--calibrate``: the committed encoder (ONNX, with its front end) and heads on the same
     pairs as training; rewrites each head's agreement check and ``sigma_m`` (nothing else) and
     the parity fixtures' decisions."""
     import onnxruntime as ort
 
-    scenarios = args.train_scenarios + [args.val_scenario]
     rng = np.random.default_rng(args.seed)
     runs, pairs, is_val, _, resolution_m, images = load_data(args, scenarios, rng)
     sess = session(os.path.join(args.models_dir, ONNX_NAME))
@@ -614,42 +631,31 @@ def calibrate(args):
     t = time.time()
     features = [np.stack([gprdata.encode(sess, x, front) for x in im]) for im in images]
     log(f"encoded {sum(len(f) for f in features)} submaps with onnxruntime {ort.__version__} ({time.time() - t:.0f} s)")
-    names = {"linear": "ground_encoding.head.json", "nonlinear": "ground_encoding.nonlinear.json"}
-    heads = {kind: json.load(open(os.path.join(args.models_dir, name))) for kind, name in names.items()}
-    k = heads["linear"]["channels"]
+    heads = {kind: json.load(open(os.path.join(args.models_dir, name))) for kind, name in HEAD_NAMES.items()}
     t = time.time()
     v = correlation_vectors(features, pairs, resolution_m, heads["linear"]["column_stride"])
     log(f"correlation vectors {v.shape} ({time.time() - t:.0f} s)")
-    shares = v[:, k:].mean(1) >= heads["linear"]["share_threshold"]
-    report = calibrate_heads(heads, v, pairs, is_val, shares, k)
+    report = calibrate_heads(heads, v, pairs, is_val)
     for kind, head in heads.items():
         head["training"] = dict(head["training"], agreement=report,
                                 calibrated={"date": datetime.date.today().isoformat(),
                                             "command": "python " + " ".join(["tools/train/train.py"] + sys.argv[1:])})
         head["training"]["sigma_rule"] = ("1.4826 x median |residual| on held-out truth pairs that pass share_threshold "
                                           "and the agreement check")
-        with open(os.path.join(args.models_dir, names[kind]), "w") as f:
-            json.dump(head, f, indent=1)
-            f.write("\n")
+        write_json(os.path.join(args.models_dir, HEAD_NAMES[kind]), head)
     manifest_path = os.path.join(args.fixtures_dir, "manifest.json")
     manifest = json.load(open(manifest_path))
     for case in manifest["cases"]:
         case.update(fixture_decision(heads["linear"], np.asarray(case["correlation"]), case["linear_m"]))
-    with open(manifest_path, "w") as f:
-        json.dump(manifest, f, indent=1)
-        f.write("\n")
-    log(f"wrote {', '.join(names.values())} and {manifest_path}")
+    write_json(manifest_path, manifest)
+    log(f"wrote {', '.join(HEAD_NAMES.values())} and {manifest_path}")
 
 
 def fixture_decision(head, v, linear_m):
     """A fixture case's decision fields: ``shares`` (share_threshold), ``agreement`` (the
     fraction of channels agreeing with the linear head) and ``registered`` (both checks)."""
-    k = head["channels"]
-    shares = bool(v[k:].mean() >= head["share_threshold"])
-    frac = float(agreement_fraction(v, np.asarray(linear_m), k))
-    check = head.get("agreement")
-    return {"shares": shares, "agreement": frac,
-            "registered": shares and (check is None or frac >= check["min_fraction"])}
+    shares, frac, registered = registration_decision(head, v, np.asarray(linear_m))
+    return {"shares": bool(shares), "agreement": float(frac), "registered": bool(registered)}
 
 
 def main():
@@ -663,7 +669,7 @@ def main():
             load_scenario(args, s)
         return
     if args.calibrate:
-        calibrate(args)
+        calibrate(args, scenarios)
         return
 
     import torch
@@ -799,7 +805,7 @@ def fit_and_validate(encoder, images, pairs, is_val, resolution_m, engineered, a
         f"{report['apart_rejected_fraction']:.3f} of non-overlapping pairs rejected")
     for head in heads.values():
         head.update(share_threshold=share_threshold, zeroth_m=zeroth)
-    report["agreement"] = calibrate_heads(heads, v, pairs, is_val, shares, k)
+    report["agreement"] = calibrate_heads(heads, v, pairs, is_val)
     share = {"train_balanced_accuracy": round(share_acc, 4), "held_out_balanced_accuracy": round(float(val_share), 4)}
     return {"heads": heads, "report": report, "share": share}
 
@@ -846,9 +852,7 @@ def export(args, encoder, heads, images, runs, pairs, is_val, resolution_m):
 
     model = onnx.load(onnx_path)
     front = ("band", BAND_ITERATIONS) if args.front_end == "band" else ("none", 0)
-    for key, value in ((gprdata.FRONT_END_KEY, front[0]), (gprdata.FRONT_END_ITERATIONS_KEY, str(front[1]))):
-        p = model.metadata_props.add()
-        p.key, p.value = key, value
+    gprdata.set_front_end(model, front)
     onnx.checker.check_model(model)
     onnx.save(model, onnx_path)
     sess = session(onnx_path)
@@ -872,10 +876,7 @@ def export(args, encoder, heads, images, runs, pairs, is_val, resolution_m):
         f"median {ms['median_ms']:.3f} ms, p90 {ms['p90_ms']:.3f} ms")
     for kind, head in heads.items():
         head["training"] = dict(head["training"], onnx_ms_one_thread=ms, onnx_bytes=os.path.getsize(onnx_path))
-        name = "ground_encoding.head.json" if kind == "linear" else "ground_encoding.nonlinear.json"
-        with open(os.path.join(args.models_dir, name), "w") as f:
-            json.dump(head, f, indent=1)
-            f.write("\n")
+        write_json(os.path.join(args.models_dir, HEAD_NAMES[kind]), head)
     write_fixtures(args, sess, heads, runs, pairs, is_val, resolution_m)
 
 
@@ -949,16 +950,13 @@ def write_fixtures(args, sess, heads, runs, pairs, is_val, resolution_m):
             f"nonlinear {entry['nonlinear_m']:.4f}, mean peak {entry['mean_peak']:.4f}")
     manifest = {"format": "gprflow-learned-fixtures", "version": 1,
                 "model": f"stages/register/models/{ONNX_NAME}",
-                "heads": {"linear": "stages/register/models/ground_encoding.head.json",
-                          "nonlinear": "stages/register/models/ground_encoding.nonlinear.json"},
+                "heads": {kind: f"stages/register/models/{name}" for kind, name in HEAD_NAMES.items()},
                 "tolerance": PARITY_TOL,
                 "tolerance_rule": "max |got - expected| <= tolerance x max |expected|, per array",
                 "onnxruntime": __import__("onnxruntime").__version__,
                 "regenerate": "tools/train/train.py (see its docstring)",
                 "cases": cases}
-    with open(os.path.join(out_dir, "manifest.json"), "w") as f:
-        json.dump(manifest, f, indent=1)
-        f.write("\n")
+    write_json(os.path.join(out_dir, "manifest.json"), manifest)
 
 
 PEAK_MARGIN = 1e-4
