@@ -124,12 +124,7 @@ impl FrontEndScratch {
             let mut blocks = image.chunks_exact(BLOCK * cols);
             for block in blocks.by_ref() {
                 let ub = block_dots::<FMA>(block, v);
-                let (r0, r1, r2, r3) = (
-                    &block[..cols],
-                    &block[cols..2 * cols],
-                    &block[2 * cols..3 * cols],
-                    &block[3 * cols..4 * cols],
-                );
+                let (r0, r1, r2, r3) = four_rows(block, cols);
                 for c in 0..cols {
                     let a = madd::<FMA>(r0[c], ub[0], next[c]);
                     let a = madd::<FMA>(r1[c], ub[1], a);
@@ -182,17 +177,23 @@ fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     if FMA { a.mul_add(b, c) } else { a * b + c }
 }
 
+/// The [`BLOCK`] rows of `block`, each `cols` long.
+#[inline(always)]
+fn four_rows(block: &[f32], cols: usize) -> (&[f32], &[f32], &[f32], &[f32]) {
+    (
+        &block[..cols],
+        &block[cols..2 * cols],
+        &block[2 * cols..3 * cols],
+        &block[3 * cols..4 * cols],
+    )
+}
+
 /// `x_r . v` of each of the [`BLOCK`] rows of `block` (rows of `v.len()`), together.
 #[inline(always)]
 fn block_dots<const FMA: bool>(block: &[f32], v: &[f32]) -> [f32; BLOCK] {
     let cols = v.len();
     let (vc, vt) = v.as_chunks::<LANES>();
-    let (r0, r1, r2, r3) = (
-        &block[..cols],
-        &block[cols..2 * cols],
-        &block[2 * cols..3 * cols],
-        &block[3 * cols..4 * cols],
-    );
+    let (r0, r1, r2, r3) = four_rows(block, cols);
     let mut acc = [[0.0f32; LANES]; BLOCK];
     let chunks = vc
         .iter()

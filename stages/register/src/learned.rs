@@ -1314,10 +1314,16 @@ impl Model {
         let corr = self.correlate(reference, query, resolution_m)?;
         let share_score = corr.share_score();
         let shift_m = self.head.predict(&corr.values);
-        let agreement = self.head.agreement.map_or(1.0, |check| check.fraction(&corr, shift_m));
+        let (agreement, agrees) = match self.head.agreement {
+            Some(check) => {
+                let fraction = check.fraction(&corr, shift_m);
+                (fraction, fraction >= check.min_fraction)
+            }
+            None => (1.0, true),
+        };
         let refusal = if share_score < self.head.share_threshold {
             Some(Refusal::NoSharedFeatures)
-        } else if self.head.agreement.is_some_and(|check| agreement < check.min_fraction) {
+        } else if !agrees {
             Some(Refusal::ChannelsDisagree)
         } else {
             None
