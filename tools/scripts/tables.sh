@@ -14,18 +14,26 @@
 #   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
 #                                      # off its path, the soil dries): out/tables-by-hand,
 #                                      # README markers tables-by-hand:begin / :end
+#   tools/scripts/tables.sh --set across_sigma_m=0.1  # every localisation run with that graph
+#                                      # variable too: out/tables-across_sigma_m=0.1, README untouched
 #   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
 #   GPRFLOW=target/debug/gprflow tools/scripts/tables.sh   # with the test build
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 write_readme=1
 by_hand=0
-for arg in "$@"; do
-    case $arg in
+sets=()
+while [[ $# -gt 0 ]]; do
+    case $1 in
         --no-readme) write_readme=0 ;;
         --by-hand) by_hand=1 ;;
-        *) echo "tables.sh: unknown argument $arg" >&2; exit 2 ;;
+        --set)
+            [[ $# -ge 2 && $2 == *=* ]] || { echo "tables.sh: --set needs KEY=VALUE" >&2; exit 2; }
+            sets+=(--set "$2")
+            shift ;;
+        *) echo "tables.sh: unknown argument $1" >&2; exit 2 ;;
     esac
+    shift
 done
 tools/scripts/ensure-onnxruntime.sh > /dev/null
 # GPRFLOW=target/debug/gprflow uses a build already there instead of the release one
@@ -46,12 +54,18 @@ if [[ $by_hand == 1 ]]; then
     marker=tables-by-hand
     for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
 fi
-mkdir -p "$out"
+# the recordings stay in the plain output folder; runs with other graph variables go next to it
+recs=$out
+if [[ ${#sets[@]} -gt 0 ]]; then
+    write_readme=0
+    for ((i = 1; i < ${#sets[@]}; i += 2)); do out+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
+fi
+mkdir -p "$out" "$recs"
 models=(engineered zeroth learned nonlinear oracle)
 
 for w in "${worlds[@]}"; do
     read -r name scenario run <<< "$w"
-    rec="$out/$name-$run.mcap"
+    rec="$recs/$name-$run.mcap"
     [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" > /dev/null
     if [[ "${REUSE:-0}" != 1 || ! -s "$out/$name-odometry.json" ]]; then
         $g launch graphs/odometry.yaml --set recording="$rec" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
@@ -66,7 +80,7 @@ for w in "${worlds[@]}"; do
             extra=(--set head=stages/register/models/ground_encoding.nonlinear.json)
         fi
         $g launch graphs/localize.yaml --set recording="$rec" --set method="$method" --set association=truth \
-            "${extra[@]}" --record "$out/$name-$m.mcap" > "$out/$name-$m.log" 2>&1
+            "${extra[@]}" "${sets[@]}" --record "$out/$name-$m.mcap" > "$out/$name-$m.log" 2>&1
         $g eval "$out/$name-$m.mcap" --truth "$rec" --format json > "$out/$name-$m.json"
         echo "$name $m done" >&2
     done

@@ -44,6 +44,10 @@ pub struct EstimateParams {
     pub registration_sigma_m: f64,
     /// Use the registration's full relative pose, not only its along-track distance (default false).
     pub registration_full_pose: bool,
+    /// Sigma of the offset across the reference's track that a registration is taken to imply,
+    /// m: right for a rig that drives the same line again; 0 reads only the along-track
+    /// distance (default 0).
+    pub registration_across_sigma_m: f64,
     /// Minimum baseline that initialises a line, m (default 1.0).
     pub line_min_baseline_m: f64,
     /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
@@ -72,6 +76,7 @@ impl Default for EstimateParams {
             wheel_sigma_m: o.wheel_sigma_m,
             registration_sigma_m: o.registration_sigma_m,
             registration_full_pose: o.registration_full_pose,
+            registration_across_sigma_m: o.registration_across_sigma_m,
             line_min_baseline_m: o.line_min_baseline_m,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             snapshot_every_states: 10,
@@ -100,6 +105,7 @@ impl EstimateParams {
             wheel_sigma_m: self.wheel_sigma_m,
             registration_sigma_m: self.registration_sigma_m,
             registration_full_pose: self.registration_full_pose,
+            registration_across_sigma_m: self.registration_across_sigma_m,
             line_min_baseline_m: self.line_min_baseline_m,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
             first_state: FirstStatePrior {
@@ -308,14 +314,17 @@ impl Stage for EstimateStage {
                 return Err(param_error(key, format!("must be finite and > 0, got {value}")));
             }
         }
-        if !(params.nonholonomic_sigma_mps.is_finite() && params.nonholonomic_sigma_mps >= 0.0) {
-            return Err(param_error(
-                "nonholonomic_sigma_mps",
-                format!(
-                    "must be finite and >= 0 (0: off), got {}",
-                    params.nonholonomic_sigma_mps
-                ),
-            ));
+        let off_or_positive = [
+            ("nonholonomic_sigma_mps", params.nonholonomic_sigma_mps),
+            ("registration_across_sigma_m", params.registration_across_sigma_m),
+        ];
+        for (key, value) in off_or_positive {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(param_error(
+                    key,
+                    format!("must be finite and >= 0 (0: off), got {value}"),
+                ));
+            }
         }
         let mut est = OnlineEstimator::new(params.online());
         if ports.input("initial_pose").is_some() {

@@ -8,7 +8,7 @@ use std::time::Instant;
 use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::factors::{
-    AlongTrack, BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, VectorPrior,
+    AcrossTrack, AlongTrack, BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, VectorPrior,
 };
 use crate::graph::FactorGraph;
 use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
@@ -36,6 +36,11 @@ pub struct OnlineParams {
     pub registration_full_pose: bool,
     /// Huber threshold on registrations (whitened); 0 for none.
     pub registration_huber_k: f64,
+    /// Sigma of the offset across the reference's track that a registration is taken to
+    /// imply, m (the relative pose's y; 0 for a 1-D registration): the two submaps share
+    /// features, so the passes were close. Right for a rig that drives the same line again,
+    /// wrong by the wander for passes that drift apart. 0 reads only the along-track distance.
+    pub registration_across_sigma_m: f64,
     /// Minimum baseline between the two observations that initialise a line, m.
     pub line_min_baseline_m: f64,
     /// Prior sigma on a new line's `(rho, theta)`.
@@ -84,6 +89,7 @@ impl Default for OnlineParams {
             registration_sigma_m: 0.05,
             registration_full_pose: false,
             registration_huber_k: 1.345,
+            registration_across_sigma_m: 0.0,
             line_min_baseline_m: 1.0,
             line_prior_sigma: 1.0,
             nonholonomic_sigma_mps: 0.1,
@@ -326,6 +332,17 @@ impl OnlineEstimator {
                 noise = noise.robust(k);
             }
             self.graph.add(AlongTrack::new(pi, pj, along_track_m, noise)?);
+            let across = self.params.registration_across_sigma_m;
+            if across > 0.0 {
+                // its own factor and robust kernel: a pass that wandered off the other's line
+                // loosens the bound, not the along-track measurement
+                let mut noise = NoiseModel::isotropic(1, across)?;
+                if let Some(k) = huber {
+                    noise = noise.robust(k);
+                }
+                self.graph
+                    .add(AcrossTrack::new(pi, pj, r.relative_pose.trans_m.y, noise)?);
+            }
         }
         Ok(true)
     }
@@ -567,9 +584,21 @@ mod tests {
     fn drive_circle(
         seconds: i64,
         wheel_scale: f64,
+        extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+    ) -> OnlineEstimator {
+        drive_circle_with(seconds, wheel_scale, 0.0, extra)
+    }
+
+    /// [`drive_circle`] with registrations bounding the across-track offset to
+    /// `registration_across_sigma_m` (0: along track only).
+    fn drive_circle_with(
+        seconds: i64,
+        wheel_scale: f64,
+        registration_across_sigma_m: f64,
         mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
     ) -> OnlineEstimator {
         let params = OnlineParams {
+            registration_across_sigma_m,
             smoother: SmootherParams {
                 background: false,
                 ..SmootherParams::default()
@@ -630,6 +659,47 @@ mod tests {
         }));
         assert!(without > 0.3, "a 10 % wheel error should show: {without} m");
         assert!(with < 0.5 * without, "with registrations {with} m, without {without} m");
+    }
+
+    /// Every 10 states, the truth's relative pose to the state 1 s before as a registration
+    /// (`along_track_m` its x), its across offset (y) moved by `across_error_m`.
+    fn register_one_second_back(across_error_m: f64) -> impl FnMut(&mut OnlineEstimator, &StateOutput) {
+        move |est, s| {
+            if s.index >= 10 && s.index % 10 == 0 {
+                let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - 1_000_000_000);
+                let mut rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+                let along_track_m = rel.trans_m.x;
+                rel.trans_m.y += across_error_m;
+                let r = RegistrationMeasurement {
+                    reference_stamp_ns: t_i,
+                    query_stamp_ns: t_j,
+                    relative_pose: rel,
+                    along_track_m,
+                    covariance: None,
+                };
+                assert!(est.registration(&r).expect("registration"));
+            }
+        }
+    }
+
+    #[test]
+    fn registrations_bound_the_across_offset_only_when_asked_to() {
+        // Along track only, a registration's across offset is not read.
+        let along = end_error_m(&drive_circle_with(10, 1.1, 0.0, register_one_second_back(0.0)));
+        let along_shifted = end_error_m(&drive_circle_with(10, 1.1, 0.0, register_one_second_back(0.3)));
+        assert_eq!(along, along_shifted);
+        // Bounded to 5 cm, the true offset keeps the estimate where it was, a 30 cm error in
+        // it pulls the estimate off.
+        let bounded = end_error_m(&drive_circle_with(10, 1.1, 0.05, register_one_second_back(0.0)));
+        let bounded_shifted = end_error_m(&drive_circle_with(10, 1.1, 0.05, register_one_second_back(0.3)));
+        assert!(
+            (bounded - along).abs() < 0.01,
+            "bounded {bounded} m, along track only {along} m"
+        );
+        assert!(
+            bounded_shifted > along + 0.1,
+            "bounded, offset wrong by 0.3 m: {bounded_shifted} m, along track only {along} m"
+        );
     }
 
     #[test]
