@@ -225,29 +225,16 @@ impl Factor for AlongTrack {
         &self.noise
     }
     fn evaluate(&self, values: &Values, jacobians: Option<&mut [DMatrix<f64>]>) -> Result<DVector<f64>> {
-        let ti = values.pose(self.keys[0])?;
-        let tj = values.pose(self.keys[1])?;
-        let tij = ti.between(tj);
-        if let Some(j) = jacobians {
-            // d t_ij / d(rot_i) = [t_ij]x, d/d(trans_i) = -I, d/d(trans_j) = R_ij.
-            let dth: Matrix3<f64> = skew(&tij.trans_m);
-            for c in 0..3 {
-                j[0][(0, c)] = dth[(0, c)];
-                j[0][(0, 3 + c)] = if c == 0 { -1.0 } else { 0.0 };
-                j[1][(0, c)] = 0.0;
-                j[1][(0, 3 + c)] = tij.rot[(0, c)];
-            }
-        }
-        Ok(DVector::from_element(1, tij.trans_m.x - self.distance_m))
+        relative_translation_component(values, &self.keys, 0, self.distance_m, jacobians)
     }
 }
 
-/// The offset across the track that a GPR registration implies: the y component of
-/// `x_i^-1 x_j`'s translation minus `z`. Two submaps that share features saw the same strip of
-/// ground, so the query lies within the radar's footprint across the reference's track.
-/// Without that bound the across offset between two passes is free, and an along-track
-/// residual can be absorbed by turning the reference state's yaw about it (a 5 mm bias on the
-/// simulated basement's registrations cost 8 cm of ATE that way).
+/// The offset across the track that a GPR registration is taken to imply: the y component of
+/// `x_i^-1 x_j`'s translation minus `z`. Two submaps that share features saw nearly the same
+/// strip of ground. Without a bound the across offset between two passes is free, and an
+/// along-track residual can be absorbed by turning the reference state's yaw about it (a 5 mm
+/// bias on the simulated basement's registrations cost 8 cm of ATE that way); with one, passes
+/// that truly ran apart are pulled together by their true offset.
 #[derive(Debug, Clone)]
 pub struct AcrossTrack {
     keys: [VarId; 2],
@@ -276,22 +263,33 @@ impl Factor for AcrossTrack {
         &self.noise
     }
     fn evaluate(&self, values: &Values, jacobians: Option<&mut [DMatrix<f64>]>) -> Result<DVector<f64>> {
-        let ti = values.pose(self.keys[0])?;
-        let tj = values.pose(self.keys[1])?;
-        let tij = ti.between(tj);
-        if let Some(j) = jacobians {
-            // row 1 of AlongTrack's: d t_ij / d(rot_i) = [t_ij]x, d/d(trans_i) = -I,
-            // d/d(trans_j) = R_ij.
-            let dth: Matrix3<f64> = skew(&tij.trans_m);
-            for c in 0..3 {
-                j[0][(0, c)] = dth[(1, c)];
-                j[0][(0, 3 + c)] = if c == 1 { -1.0 } else { 0.0 };
-                j[1][(0, c)] = 0.0;
-                j[1][(0, 3 + c)] = tij.rot[(1, c)];
-            }
-        }
-        Ok(DVector::from_element(1, tij.trans_m.y - self.offset_m))
+        relative_translation_component(values, &self.keys, 1, self.offset_m, jacobians)
     }
+}
+
+/// Component `axis` of `x_i^-1 x_j`'s translation minus `z`, the residual of [`AlongTrack`]
+/// (x) and [`AcrossTrack`] (y).
+fn relative_translation_component(
+    values: &Values,
+    keys: &[VarId; 2],
+    axis: usize,
+    z: f64,
+    jacobians: Option<&mut [DMatrix<f64>]>,
+) -> Result<DVector<f64>> {
+    let ti = values.pose(keys[0])?;
+    let tj = values.pose(keys[1])?;
+    let tij = ti.between(tj);
+    if let Some(j) = jacobians {
+        // d t_ij / d(rot_i) = [t_ij]x, d/d(trans_i) = -I, d/d(trans_j) = R_ij.
+        let dth: Matrix3<f64> = skew(&tij.trans_m);
+        for c in 0..3 {
+            j[0][(0, c)] = dth[(axis, c)];
+            j[0][(0, 3 + c)] = if c == axis { -1.0 } else { 0.0 };
+            j[1][(0, c)] = 0.0;
+            j[1][(0, 3 + c)] = tij.rot[(axis, c)];
+        }
+    }
+    Ok(DVector::from_element(1, tij.trans_m[axis] - z))
 }
 
 /// Which position components a [`PositionFix`] constrains.
