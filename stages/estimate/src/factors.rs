@@ -195,67 +195,56 @@ impl Factor for BetweenPose {
     }
 }
 
-/// The along-track distance a GPR registration (or a wheel encoder) measures between two
-/// states: the x component of `x_i^-1 x_j`'s translation minus `z`.
+/// One component of the translation between two states, `x_i^-1 x_j`, minus `z`:
+///
+/// - [`TrackOffset::along`], x: the along-track distance a GPR registration (or a wheel
+///   encoder) measures;
+/// - [`TrackOffset::across`], y: the offset across the track that a GPR registration is taken
+///   to imply. Two submaps that share features saw nearly the same strip of ground. Without a
+///   bound the across offset between two passes is free, and an along-track residual can be
+///   absorbed by turning the reference state's yaw about it (a 5 mm bias on the simulated
+///   basement's registrations cost 8 cm of ATE that way); with one, passes that truly ran
+///   apart are pulled together by their true offset.
 #[derive(Debug, Clone)]
-pub struct AlongTrack {
+pub struct TrackOffset {
     keys: [VarId; 2],
-    distance_m: f64,
+    /// 0: along track (x), 1: across (y).
+    axis: usize,
+    z_m: f64,
     noise: NoiseModel,
 }
 
-impl AlongTrack {
+impl TrackOffset {
+    /// The along-track distance `distance_m` from `i` to `j`.
+    ///
     /// # Errors
     /// A noise model that is not 1-dimensional.
-    pub fn new(i: VarId, j: VarId, distance_m: f64, noise: NoiseModel) -> Result<Self> {
+    pub fn along(i: VarId, j: VarId, distance_m: f64, noise: NoiseModel) -> Result<Self> {
         check_dim(&noise, 1, "an along-track factor")?;
         Ok(Self {
             keys: [i, j],
-            distance_m,
+            axis: 0,
+            z_m: distance_m,
             noise,
         })
     }
-}
 
-impl Factor for AlongTrack {
-    fn keys(&self) -> &[VarId] {
-        &self.keys
-    }
-    fn noise(&self) -> &NoiseModel {
-        &self.noise
-    }
-    fn evaluate(&self, values: &Values, jacobians: Option<&mut [DMatrix<f64>]>) -> Result<DVector<f64>> {
-        relative_translation_component(values, &self.keys, 0, self.distance_m, jacobians)
-    }
-}
-
-/// The offset across the track that a GPR registration is taken to imply: the y component of
-/// `x_i^-1 x_j`'s translation minus `z`. Two submaps that share features saw nearly the same
-/// strip of ground. Without a bound the across offset between two passes is free, and an
-/// along-track residual can be absorbed by turning the reference state's yaw about it (a 5 mm
-/// bias on the simulated basement's registrations cost 8 cm of ATE that way); with one, passes
-/// that truly ran apart are pulled together by their true offset.
-#[derive(Debug, Clone)]
-pub struct AcrossTrack {
-    keys: [VarId; 2],
-    offset_m: f64,
-    noise: NoiseModel,
-}
-
-impl AcrossTrack {
+    /// The offset `offset_m` of `j` across `i`'s track.
+    ///
     /// # Errors
     /// A noise model that is not 1-dimensional.
-    pub fn new(i: VarId, j: VarId, offset_m: f64, noise: NoiseModel) -> Result<Self> {
+    pub fn across(i: VarId, j: VarId, offset_m: f64, noise: NoiseModel) -> Result<Self> {
         check_dim(&noise, 1, "an across-track factor")?;
         Ok(Self {
             keys: [i, j],
-            offset_m,
+            axis: 1,
+            z_m: offset_m,
             noise,
         })
     }
 }
 
-impl Factor for AcrossTrack {
+impl Factor for TrackOffset {
     fn keys(&self) -> &[VarId] {
         &self.keys
     }
@@ -263,33 +252,22 @@ impl Factor for AcrossTrack {
         &self.noise
     }
     fn evaluate(&self, values: &Values, jacobians: Option<&mut [DMatrix<f64>]>) -> Result<DVector<f64>> {
-        relative_translation_component(values, &self.keys, 1, self.offset_m, jacobians)
-    }
-}
-
-/// Component `axis` of `x_i^-1 x_j`'s translation minus `z`, the residual of [`AlongTrack`]
-/// (x) and [`AcrossTrack`] (y).
-fn relative_translation_component(
-    values: &Values,
-    keys: &[VarId; 2],
-    axis: usize,
-    z: f64,
-    jacobians: Option<&mut [DMatrix<f64>]>,
-) -> Result<DVector<f64>> {
-    let ti = values.pose(keys[0])?;
-    let tj = values.pose(keys[1])?;
-    let tij = ti.between(tj);
-    if let Some(j) = jacobians {
-        // d t_ij / d(rot_i) = [t_ij]x, d/d(trans_i) = -I, d/d(trans_j) = R_ij.
-        let dth: Matrix3<f64> = skew(&tij.trans_m);
-        for c in 0..3 {
-            j[0][(0, c)] = dth[(axis, c)];
-            j[0][(0, 3 + c)] = if c == axis { -1.0 } else { 0.0 };
-            j[1][(0, c)] = 0.0;
-            j[1][(0, 3 + c)] = tij.rot[(axis, c)];
+        let ti = values.pose(self.keys[0])?;
+        let tj = values.pose(self.keys[1])?;
+        let tij = ti.between(tj);
+        let axis = self.axis;
+        if let Some(j) = jacobians {
+            // d t_ij / d(rot_i) = [t_ij]x, d/d(trans_i) = -I, d/d(trans_j) = R_ij; row `axis`.
+            let dth: Matrix3<f64> = skew(&tij.trans_m);
+            for c in 0..3 {
+                j[0][(0, c)] = dth[(axis, c)];
+                j[0][(0, 3 + c)] = if c == axis { -1.0 } else { 0.0 };
+                j[1][(0, c)] = 0.0;
+                j[1][(0, 3 + c)] = tij.rot[(axis, c)];
+            }
         }
+        Ok(DVector::from_element(1, tij.trans_m[axis] - self.z_m))
     }
-    Ok(DVector::from_element(1, tij.trans_m[axis] - z))
 }
 
 /// Which position components a [`PositionFix`] constrains.
@@ -630,9 +608,9 @@ mod tests {
         assert_jacobians(&PosePrior::new(a, pose(0.1), n6.clone()).expect("f"), &v);
         assert_jacobians(&BetweenPose::new(a, b, pose(0.7), n6).expect("f"), &v);
         let n1 = NoiseModel::isotropic(1, 0.1).expect("noise");
-        assert_jacobians(&AlongTrack::new(a, b, 0.3, n1).expect("f"), &v);
+        assert_jacobians(&TrackOffset::along(a, b, 0.3, n1).expect("f"), &v);
         let n1 = NoiseModel::isotropic(1, 0.2).expect("noise");
-        assert_jacobians(&AcrossTrack::new(a, b, -0.1, n1).expect("f"), &v);
+        assert_jacobians(&TrackOffset::across(a, b, -0.1, n1).expect("f"), &v);
         let n3 = NoiseModel::isotropic(3, 0.1).expect("noise");
         let z = Vector3::new(1.0, 2.0, 3.0);
         assert_jacobians(&PositionFix::new(a, z, PositionAxes::Xyz, n3.clone()).expect("f"), &v);

@@ -8,7 +8,7 @@ use std::time::Instant;
 use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::factors::{
-    AcrossTrack, AlongTrack, BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, VectorPrior,
+    BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, TrackOffset, VectorPrior,
 };
 use crate::graph::FactorGraph;
 use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
@@ -315,33 +315,30 @@ impl OnlineEstimator {
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
             k: self.params.registration_huber_k,
         });
+        let robust = |noise: NoiseModel| match huber {
+            Some(k) => noise.robust(k),
+            None => noise,
+        };
         let cov = r.covariance.as_ref().filter(|c| c.nrows() == 6 && c.ncols() == 6);
         if self.params.registration_full_pose {
-            let mut noise = match cov.map(NoiseModel::from_covariance) {
+            let noise = match cov.map(NoiseModel::from_covariance) {
                 Some(Ok(n)) => n,
                 _ => NoiseModel::diagonal(&[0.01, 0.01, 0.01, self.params.registration_sigma_m, 0.05, 0.05])?,
             };
-            if let Some(k) = huber {
-                noise = noise.robust(k);
-            }
-            self.graph.add(BetweenPose::new(pi, pj, r.relative_pose, noise)?);
+            self.graph
+                .add(BetweenPose::new(pi, pj, r.relative_pose, robust(noise))?);
         } else {
             let sigma = cov.map(|c| c[(3, 3)].sqrt()).filter(|s| s.is_finite() && *s > 0.0);
-            let mut noise = NoiseModel::isotropic(1, sigma.unwrap_or(self.params.registration_sigma_m))?;
-            if let Some(k) = huber {
-                noise = noise.robust(k);
-            }
-            self.graph.add(AlongTrack::new(pi, pj, along_track_m, noise)?);
+            let noise = NoiseModel::isotropic(1, sigma.unwrap_or(self.params.registration_sigma_m))?;
+            self.graph
+                .add(TrackOffset::along(pi, pj, along_track_m, robust(noise))?);
             let across = self.params.registration_across_sigma_m;
             if across > 0.0 {
                 // its own factor and robust kernel: a pass that wandered off the other's line
                 // loosens the bound, not the along-track measurement
-                let mut noise = NoiseModel::isotropic(1, across)?;
-                if let Some(k) = huber {
-                    noise = noise.robust(k);
-                }
+                let noise = robust(NoiseModel::isotropic(1, across)?);
                 self.graph
-                    .add(AcrossTrack::new(pi, pj, r.relative_pose.trans_m.y, noise)?);
+                    .add(TrackOffset::across(pi, pj, r.relative_pose.trans_m.y, noise)?);
             }
         }
         Ok(true)
@@ -453,7 +450,7 @@ impl OnlineEstimator {
             if let (Some(now), Some(before)) = (self.wheel_distance_m, self.wheel_at_state) {
                 let noise = NoiseModel::isotropic(1, self.params.wheel_sigma_m)?;
                 self.graph
-                    .add(AlongTrack::new(prev.pose, keys.pose, now - before, noise)?);
+                    .add(TrackOffset::along(prev.pose, keys.pose, now - before, noise)?);
             }
             keys
         } else {
