@@ -604,6 +604,18 @@ pub fn run_node<S: Stage>(
         Err(e) => return Err(e.into()),
     }
     drop(stage);
+    let received = inputs
+        .iter()
+        .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().received))
+        .collect();
+    let dropped = inputs
+        .iter()
+        .filter(|s| s.inbox.stats().dropped > 0)
+        .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().dropped))
+        .collect();
+    // Unsubscribe before waiting for our own consumers: in a feedback loop they are our
+    // producers, and each would otherwise wait out the handshake for the other.
+    drop(inputs);
     for o in &out.outboxes {
         if !o.linger(handshake, &stopped) && !stopped() {
             tracing::warn!(
@@ -615,15 +627,8 @@ pub fn run_node<S: Stage>(
 
     let report = RunReport {
         node: spec.node.clone(),
-        received: inputs
-            .iter()
-            .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().received))
-            .collect(),
-        dropped: inputs
-            .iter()
-            .filter(|s| s.inbox.stats().dropped > 0)
-            .map(|s| (s.inbox.topic().to_owned(), s.inbox.stats().dropped))
-            .collect(),
+        received,
+        dropped,
         sent: out.outboxes.iter().map(|o| (o.topic().to_owned(), o.sent())).collect(),
         callback_us: [
             latency.value_at_quantile(0.5),
