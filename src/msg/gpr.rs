@@ -126,6 +126,10 @@ message! {
         /// The validity rule held over the whole submap.
         pub valid: bool,
         pub pixels: Cow<'a, [f32]>,
+        /// When the rig was over each column's centre, ns, one per column (interpolated
+        /// between the traces around it): a shift found on the grid maps to a moment of the
+        /// pass without the wheel's scale.
+        pub column_stamps_ns: Cow<'a, [i64]>,
     }
 }
 

@@ -356,6 +356,7 @@ impl Stage for DspSubmapStage {
         }
         let owned: Submap<'static> = Submap {
             pixels: Cow::Owned(m.pixels.into_owned()),
+            column_stamps_ns: Cow::Owned(m.column_stamps_ns.into_owned()),
             header: m.header,
             id: m.id,
             start_stamp: m.start_stamp,

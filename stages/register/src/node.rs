@@ -11,7 +11,11 @@
 //!
 //! A query waits until the association frame reaches it: the estimate (or truth) must cover
 //! its oldest trace (its anchor with the oracle), so registrations go out slightly after
-//! their submap; each carries the two anchor stamps, which is what the estimator uses.
+//! their submap. A shift found on the grid (every method but the oracle) goes out as the
+//! moments the two passes were over the middle of their shared ground (the submaps' column
+//! stamps, [`overlap_stamps`]) with an along-track offset of zero: the grid is laid on wheel
+//! distance, and a shift in metres would carry the wheel's scale error into the estimate.
+//! The oracle's ground-truth shift goes out between the two anchor stamps.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -181,6 +185,8 @@ struct Entry {
     cols: usize,
     resolution_m: f64,
     pixels: Vec<f32>,
+    /// When the rig was over each column, ns, in ground order (empty when the submap has none).
+    column_stamps_ns: Vec<i64>,
     /// The learned model's features (encoded once, on arrival).
     features: Option<Features>,
 }
@@ -203,6 +209,12 @@ impl Entry {
         }
         if let Some(i) = m.pixels.iter().position(|v| !v.is_finite()) {
             return Err(format!("pixels[{i}] is {}", m.pixels[i]));
+        }
+        if !(m.column_stamps_ns.is_empty() || m.column_stamps_ns.len() == cols) {
+            return Err(format!(
+                "column_stamps_ns: {} values for {cols} columns",
+                m.column_stamps_ns.len()
+            ));
         }
         if !(m.resolution_m.is_finite() && m.resolution_m > 0.0) {
             return Err(format!("resolution_m: {}", m.resolution_m));
@@ -230,6 +242,11 @@ impl Entry {
             cols,
             resolution_m: m.resolution_m,
             pixels: ground_order(&m.pixels, rows, cols, backward),
+            column_stamps_ns: if backward {
+                m.column_stamps_ns.iter().rev().copied().collect()
+            } else {
+                m.column_stamps_ns.to_vec()
+            },
             features: None,
         })
     }
@@ -409,10 +426,16 @@ impl RegisterStage {
             }
         };
         let sigma = self.params.sigma(learned_sigma);
+        let grid = self.params.method != Method::Oracle;
+        let (stamps_ns, along_m) = match overlap_stamps(r, q, shift_m) {
+            Some(stamps) if grid => (stamps, 0.0),
+            _ => ((r.anchor.stamp_ns, q.anchor.stamp_ns), shift_m),
+        };
         Ok(Some(registration(
             r,
             q,
-            shift_m,
+            stamps_ns,
+            along_m,
             score,
             sigma,
             self.params.method.name(),
@@ -420,9 +443,46 @@ impl RegisterStage {
     }
 }
 
-/// A registration of `q` against `r` with an along-track `shift_m`; the other axes get a
-/// large variance (an along-track-only measurement).
-fn registration(r: &Entry, q: &Entry, shift_m: f64, score: f64, sigma_m: f64, method: &str) -> Registration {
+/// The moments (reference, query), ns, the two passes were over the middle of the ground
+/// they share when the query's column 0 lies `shift_m` along the reference's; `None` when
+/// they share none or a submap has no column stamps.
+fn overlap_stamps(r: &Entry, q: &Entry, shift_m: f64) -> Option<(i64, i64)> {
+    let (cr, cq) = (r.column_stamps_ns.len(), q.column_stamps_ns.len());
+    if cr == 0 || cq == 0 {
+        return None;
+    }
+    // query column c lies over reference column offset + c * scale
+    let offset = shift_m / r.resolution_m;
+    let scale = q.resolution_m / r.resolution_m;
+    let first = (-offset / scale).max(0.0);
+    let last = (((cr - 1) as f64 - offset) / scale).min((cq - 1) as f64);
+    if !(first.is_finite() && last.is_finite()) || first > last {
+        return None;
+    }
+    let c_q = 0.5 * (first + last);
+    let at = |stamps: &[i64], c: f64| {
+        let c = c.clamp(0.0, (stamps.len() - 1) as f64);
+        let (i, frac) = (c.floor() as usize, c - c.floor());
+        let (a, b) = (stamps[i], stamps[(i + 1).min(stamps.len() - 1)]);
+        a + ((b - a) as f64 * frac).round() as i64
+    };
+    Some((
+        at(&r.column_stamps_ns, offset + c_q * scale),
+        at(&q.column_stamps_ns, c_q),
+    ))
+}
+
+/// A registration of `q` against `r`: `q` at `stamps_ns.1` lies `along_m` along track from
+/// `r` at `stamps_ns.0`; the other axes get a large variance (an along-track-only measurement).
+fn registration(
+    r: &Entry,
+    q: &Entry,
+    stamps_ns: (i64, i64),
+    shift_m: f64,
+    score: f64,
+    sigma_m: f64,
+    method: &str,
+) -> Registration {
     const LOOSE: f64 = 1e4;
     let variance = sigma_m * sigma_m;
     let mut cov = [0.0; 36];
@@ -433,8 +493,8 @@ fn registration(r: &Entry, q: &Entry, shift_m: f64, score: f64, sigma_m: f64, me
         header: Header::default(),
         reference_submap: r.id,
         query_submap: q.id,
-        reference_stamp: Time::from_ns(r.anchor.stamp_ns),
-        query_stamp: Time::from_ns(q.anchor.stamp_ns),
+        reference_stamp: Time::from_ns(stamps_ns.0),
+        query_stamp: Time::from_ns(stamps_ns.1),
         reference_from_query: Pose {
             position: Point {
                 x: shift_m,
@@ -673,12 +733,67 @@ mod tests {
             cols: 1,
             resolution_m: 0.01,
             pixels: vec![0.0],
+            column_stamps_ns: Vec::new(),
             features: None,
         };
-        let m = registration(&e(3, 10), &e(9, 20), 0.25, 0.8, 0.1, "engineered");
+        let m = registration(&e(3, 1), &e(9, 2), (10, 20), 0.25, 0.8, 0.1, "engineered");
         assert_eq!((m.reference_submap, m.query_submap), (3, 9));
         assert_eq!((m.reference_stamp.to_ns(), m.query_stamp.to_ns()), (10, 20));
         assert!((m.covariance.0[0] - 0.01).abs() < 1e-15 && m.covariance.0[7] > 1.0);
         assert_eq!(m.reference_from_query.position.x, 0.25);
+    }
+
+    /// An entry of `cols` columns of 0.01 m crossed at `t0_ns + step_ns * c`, from a message
+    /// as the stage gets it.
+    fn timed_entry(cols: usize, t0_ns: i64, step_ns: i64, backward: bool) -> Entry {
+        let stamps: Vec<i64> = (0..cols as i64).map(|c| t0_ns + step_ns * c).collect();
+        let (start, end) = if backward { (1.0, 0.0) } else { (0.0, 1.0) };
+        let m = Submap {
+            rows: 1,
+            cols: cols as u32,
+            resolution_m: 0.01,
+            start_distance_m: start,
+            end_distance_m: end,
+            pixels: std::borrow::Cow::Owned(vec![0.0; cols]),
+            column_stamps_ns: std::borrow::Cow::Owned(stamps),
+            ..Submap::default()
+        };
+        Entry::from_msg(&m).expect("a good submap")
+    }
+
+    #[test]
+    fn a_grid_shift_goes_out_as_the_moments_over_the_middle_of_the_shared_ground() {
+        let (r, q) = (timed_entry(100, 1_000, 10, false), timed_entry(100, 5_000, 20, false));
+        // query column 0 over reference column 30: they share query columns 0..=69
+        assert_eq!(overlap_stamps(&r, &q, 0.3), Some((1_000 + 645, 5_000 + 690)));
+        // query column 30 over reference column 0: query columns 30..=99
+        assert_eq!(overlap_stamps(&r, &q, -0.3), Some((1_000 + 345, 5_000 + 1290)));
+        assert_eq!(overlap_stamps(&r, &q, 0.0), Some((1_000 + 495, 5_000 + 990)));
+        // nothing shared
+        assert_eq!(overlap_stamps(&r, &q, 1.5), None);
+        let none = Entry {
+            column_stamps_ns: Vec::new(),
+            ..timed_entry(100, 0, 10, false)
+        };
+        assert_eq!(overlap_stamps(&none, &q, 0.3), None);
+        // a backward submap's stamps are put in ground order with its pixels: its column 0
+        // (in ground order) is its newest
+        let back = timed_entry(100, 1_000, 10, true);
+        assert_eq!(back.column_stamps_ns[0], 1_000 + 990);
+        assert_eq!(overlap_stamps(&back, &q, 0.3), Some((1_000 + 990 - 645, 5_000 + 690)));
+    }
+
+    #[test]
+    fn column_stamps_of_the_wrong_length_are_refused() {
+        let m = Submap {
+            rows: 1,
+            cols: 3,
+            resolution_m: 0.01,
+            pixels: std::borrow::Cow::Owned(vec![0.0; 3]),
+            column_stamps_ns: std::borrow::Cow::Owned(vec![0, 1]),
+            ..Submap::default()
+        };
+        let why = Entry::from_msg(&m).expect_err("two stamps for three columns");
+        assert!(why.contains("column_stamps_ns: 2 values for 3 columns"), "{why}");
     }
 }

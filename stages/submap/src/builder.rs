@@ -38,6 +38,8 @@ pub struct Submap {
     pub filled_cols: usize,
     /// `rows x cols`, row-major.
     pub pixels: Vec<f32>,
+    /// When the rig was over each column's centre, ns (see [`column_stamps`]).
+    pub column_stamps_ns: Vec<i64>,
 }
 
 /// Counts over a builder's life.
@@ -62,6 +64,8 @@ struct Bin {
     count: u32,
     first_stamp_ns: i64,
     last_stamp_ns: i64,
+    /// Sum of its traces' stamps, ns (for their mean).
+    stamp_sum_ns: i128,
     /// Sums of the wheel distance and travel of its traces (for their means).
     distance_sum_m: f64,
     travel_sum_m: f64,
@@ -316,6 +320,7 @@ impl SubmapBuilder {
                 }
                 bin.count += 1;
                 bin.last_stamp_ns = stamp_ns;
+                bin.stamp_sum_ns += i128::from(stamp_ns);
                 bin.distance_sum_m += at.distance_m;
                 bin.travel_sum_m += at.travel_m;
                 bin.last_pose = at.pose;
@@ -329,6 +334,7 @@ impl SubmapBuilder {
                 count: 1,
                 first_stamp_ns: stamp_ns,
                 last_stamp_ns: stamp_ns,
+                stamp_sum_ns: i128::from(stamp_ns),
                 distance_sum_m: at.distance_m,
                 travel_sum_m: at.travel_m,
                 segment: at.segment,
@@ -414,6 +420,18 @@ impl SubmapBuilder {
             let centre = (first_index as f64 + c as f64 + 0.5) * res;
             d + f64::from(bin.direction) * (centre - s)
         };
+        let filled_bins = self.bins.iter().filter(|b| b.index - first_index < cols as i64);
+        // relative to t0, so that f64 keeps nanoseconds
+        let column_stamps_ns = column_stamps(
+            filled_bins.map(|b| {
+                let mean_ns = b.stamp_sum_ns / i128::from(b.count) - i128::from(t0);
+                (b.travel_sum_m / f64::from(b.count), mean_ns as f64)
+            }),
+            (0..cols).map(|c| (first_index as f64 + c as f64 + 0.5) * res),
+        )
+        .into_iter()
+        .map(|dt| t0 + dt)
+        .collect();
         let start_distance_m = distance_at(first, 0);
         let end_distance_m = distance_at(last, cols - 1);
         let id = self.next_id;
@@ -442,8 +460,37 @@ impl SubmapBuilder {
             invalid_reason: reason,
             filled_cols: filled.iter().filter(|f| **f).count(),
             pixels,
+            column_stamps_ns,
         })
     }
+}
+
+/// The stamp at each of `centres` (travel, m, increasing) on the piecewise-linear track
+/// through `points` (a bin's mean travel and mean stamp, in travel order), extended past
+/// the ends along the first and last pieces; with one point, its stamp everywhere.
+fn column_stamps(points: impl Iterator<Item = (f64, f64)>, centres: impl Iterator<Item = f64>) -> Vec<i64> {
+    let points: Vec<(f64, f64)> = points.collect();
+    let mut k = 0;
+    centres
+        .map(|x| {
+            let stamp = match points.as_slice() {
+                [] => 0.0,
+                [(_, t)] => *t,
+                _ => {
+                    while k + 2 < points.len() && points[k + 1].0 < x {
+                        k += 1;
+                    }
+                    let ((x0, t0), (x1, t1)) = (points[k], points[k + 1]);
+                    if x1 > x0 {
+                        t0 + (t1 - t0) * (x - x0) / (x1 - x0)
+                    } else {
+                        t0
+                    }
+                }
+            };
+            stamp.round() as i64
+        })
+        .collect()
 }
 
 /// The wheel sample interpolated at `stamp_ns` between `a` (if any) and `b`.
@@ -552,6 +599,66 @@ mod tests {
         assert!((step - 0.02).abs() < 0.015 + 1e-9, "{step}");
         let span = maps[100].start_distance_m - maps[0].start_distance_m;
         assert!((span - 2.0).abs() < 0.02, "{span}");
+    }
+
+    /// The largest error, s, of `m`'s column stamps against the moment `distance` (which
+    /// turns back only at `turn_s`) passed each column's centre.
+    fn column_stamp_error_s(m: &Submap, distance: &impl Fn(f64) -> f64, turn_s: f64) -> f64 {
+        let (mut t0, mut t1) = (m.start_stamp_ns as f64 * 1e-9 - 0.1, m.end_stamp_ns as f64 * 1e-9 + 0.1);
+        if t0 >= turn_s - 0.1 {
+            t0 = t0.max(turn_s);
+        } else {
+            t1 = t1.min(turn_s);
+        }
+        let rising = distance(t1) > distance(t0);
+        let step = (m.end_distance_m - m.start_distance_m) / (m.cols - 1) as f64;
+        assert_eq!(m.column_stamps_ns.len(), m.cols);
+        (0..m.cols)
+            .filter_map(|c| {
+                let d = m.start_distance_m + step * c as f64;
+                // a centre the rig never reached (past a turn) has no true moment
+                if (distance(t0) < d) != rising || (distance(t1) > d) != rising {
+                    return None;
+                }
+                let (mut lo, mut hi) = (t0, t1);
+                for _ in 0..60 {
+                    let mid = 0.5 * (lo + hi);
+                    if (distance(mid) < d) == rising {
+                        lo = mid
+                    } else {
+                        hi = mid
+                    }
+                }
+                Some((m.column_stamps_ns[c] as f64 * 1e-9 - lo).abs())
+            })
+            .fold(0.0, f64::max)
+    }
+
+    #[test]
+    fn column_stamps_give_when_the_rig_was_over_each_column() {
+        // speed between 0.34 and 0.66 m/s; then 2 m/s, where some columns hold no trace;
+        // then back and forth
+        // (duration, the moment it turns back, distance)
+        type Profile = (f64, f64, Box<dyn Fn(f64) -> f64>);
+        let profiles: [Profile; 3] = [
+            (12.0, f64::INFINITY, Box::new(|t| 0.5 * t + 0.2 * (0.8 * t).sin())),
+            (3.0, f64::INFINITY, Box::new(|t| 2.0 * t)),
+            (
+                20.0,
+                9.0,
+                Box::new(|t| if t < 9.0 { 0.5 * t } else { 4.5 - 0.5 * (t - 9.0) }),
+            ),
+        ];
+        for (i, (duration_s, turn_s, distance)) in profiles.iter().enumerate() {
+            let (maps, _) = drive(SubmapParams::default(), *duration_s, distance, |_| 0.0);
+            let valid: Vec<_> = maps.iter().filter(|m| m.valid).collect();
+            assert!(!valid.is_empty(), "profile {i}");
+            for m in valid {
+                let err = column_stamp_error_s(m, distance, *turn_s);
+                // traces 10 ms apart, wheel samples 20 ms apart: a millisecond or two
+                assert!(err < 0.002, "profile {i} submap {}: {err} s", m.id);
+            }
+        }
     }
 
     #[test]

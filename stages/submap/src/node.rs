@@ -57,6 +57,7 @@ pub fn submap_msg(s: Submap, sample_interval_ns: f64) -> SubmapMsg<'static> {
         saliency: s.saliency,
         valid: s.valid,
         pixels: Cow::Owned(s.pixels),
+        column_stamps_ns: Cow::Owned(s.column_stamps_ns),
     }
 }
 
