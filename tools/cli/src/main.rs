@@ -131,6 +131,10 @@ enum Command {
         /// Stop after this many seconds of sensor time.
         #[arg(long, value_name = "SECONDS")]
         duration: Option<f64>,
+        /// Draw the run's sensor noise and vibration afresh: repeat K of the same run in the
+        /// same world (0, the default: the scenario's own draw).
+        #[arg(long, value_name = "K", default_value_t = 0)]
+        repeat: u32,
         /// Print the JSON schema of scenario files and exit.
         #[arg(long)]
         schema: bool,
@@ -407,6 +411,7 @@ fn main() -> ExitCode {
             run,
             format,
             duration,
+            repeat,
             schema,
             json,
         } => gprflow_cli::sim::sim(&gprflow_cli::sim::SimArgs {
@@ -415,6 +420,7 @@ fn main() -> ExitCode {
             run,
             format,
             duration_s: duration,
+            repeat,
             schema,
             json,
         }),

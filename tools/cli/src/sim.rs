@@ -30,6 +30,8 @@ pub struct SimArgs {
     pub format: SimFormat,
     /// Stop after this many seconds.
     pub duration_s: Option<f64>,
+    /// Draw the sensor noise afresh (0: the scenario's own).
+    pub repeat: u32,
     /// Print the scenario JSON schema and exit.
     pub schema: bool,
     /// Print the summary as JSON.
@@ -61,6 +63,7 @@ pub fn sim(args: &SimArgs) -> Result<ExitCode> {
         output: output.clone(),
         cmu_gpr,
         max_duration_s: args.duration_s,
+        repeat: args.repeat,
         scenario_text: std::fs::read_to_string(scenario_path).unwrap_or_default(),
     };
     let bar = indicatif::ProgressBar::with_draw_target(Some(1000), indicatif::ProgressDrawTarget::stderr());

@@ -36,6 +36,9 @@ pub struct SimOptions {
     pub cmu_gpr: Option<PathBuf>,
     /// Stop after this many seconds of sensor time.
     pub max_duration_s: Option<f64>,
+    /// Draws the run's sensor noise and vibration afresh: repeat `k` of the same run in the
+    /// same world (0: the scenario's own draw).
+    pub repeat: u32,
     /// The scenario file's text, carried in the recording as an attachment.
     pub scenario_text: String,
 }
@@ -312,7 +315,7 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     let run = scenario.run(opts.run.as_deref())?;
     let seed = scenario.seed;
     let run_seed = {
-        let mut r = Rng::derive(seed, &format!("run:{}", run.name), 0);
+        let mut r = Rng::derive(seed, &format!("run:{}", run.name), i64::from(opts.repeat));
         r.next_u64()
     };
     let motion = Motion::new(run, &scenario.vibration, &mut Rng::derive(run_seed, "vibration", 0));
@@ -324,7 +327,10 @@ pub fn simulate(scenario: &Scenario, opts: &SimOptions, progress: &mut dyn FnMut
     let end_ns = start_ns + (duration_s * 1e9).round() as i64;
 
     let mut meta = RunMetadata::this_build();
-    meta.run_id = format!("sim-{}-{}", scenario.name, run.name);
+    meta.run_id = match opts.repeat {
+        0 => format!("sim-{}-{}", scenario.name, run.name),
+        k => format!("sim-{}-{}-repeat{k}", scenario.name, run.name),
+    };
     let mut rec = Recorder::create_reproducible(&opts.output, &meta, u64::try_from(start_ns).unwrap_or(0))?;
     let mut fields = BTreeMap::new();
     fields.insert("scenario".to_owned(), scenario.name.clone());
