@@ -7,18 +7,25 @@
 #
 #   tools/scripts/repeats.sh                # repeats 1..4 of the plain runs: out/repeats
 #   tools/scripts/repeats.sh --by-hand -n 6 # repeats 1..6 of the by_hand runs: out/repeats-by-hand
+#   tools/scripts/repeats.sh --set stamps=overlap  # localisation with that graph variable too:
+#                                           # out/repeats-stamps=overlap (same recordings)
 #   GPRFLOW=target/debug/gprflow tools/scripts/repeats.sh   # with the test build
 #   REUSE=1 tools/scripts/repeats.sh        # keep the runs already there (their JSON)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 n=4
 by_hand=0
+sets=()
 while [[ $# -gt 0 ]]; do
     case $1 in
         --by-hand) by_hand=1 ;;
         -n)
             [[ $# -ge 2 && $2 =~ ^[1-9][0-9]*$ ]] || { echo "repeats.sh: -n needs a count" >&2; exit 2; }
             n=$2
+            shift ;;
+        --set)
+            [[ $# -ge 2 && $2 == *=* ]] || { echo "repeats.sh: --set needs KEY=VALUE" >&2; exit 2; }
+            sets+=(--set "$2")
             shift ;;
         *) echo "repeats.sh: unknown argument $1" >&2; exit 2 ;;
     esac
@@ -39,12 +46,15 @@ if [[ $by_hand == 1 ]]; then
     out=out/repeats-by-hand
     for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
 fi
-mkdir -p "$out"
+# the recordings stay in the plain output folder; runs with other graph variables go next to it
+recs=$out
+for ((i = 1; i < ${#sets[@]}; i += 2)); do out+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
+mkdir -p "$out" "$recs"
 
 for w in "${worlds[@]}"; do
     read -r name scenario run <<< "$w"
     for ((k = 1; k <= n; k++)); do
-        rec="$out/$name-$run-$k.mcap"
+        rec="$recs/$name-$run-$k.mcap"
         [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" --repeat "$k" > /dev/null
         for m in odometry learned oracle; do
             base="$out/$name-$k-$m"
@@ -53,7 +63,7 @@ for w in "${worlds[@]}"; do
                 $g launch graphs/odometry.yaml --set recording="$rec" --record "$base.mcap" > "$base.log" 2>&1
             else
                 $g launch graphs/localize.yaml --set recording="$rec" --set method="$m" --set association=truth \
-                    --record "$base.mcap" > "$base.log" 2>&1
+                    "${sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
             fi
             $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
             rm -f "$base.mcap"

@@ -11,11 +11,11 @@
 //!
 //! A query waits until the association frame reaches it: the estimate (or truth) must cover
 //! its oldest trace (its anchor with the oracle), so registrations go out slightly after
-//! their submap. A shift found on the grid (every method but the oracle) goes out as the
-//! moments the two passes were over the middle of their shared ground (the submaps' column
-//! stamps, [`overlap_stamps`]) with an along-track offset of zero: the grid is laid on wheel
-//! distance, and a shift in metres would carry the wheel's scale error into the estimate.
-//! The oracle's ground-truth shift goes out between the two anchor stamps.
+//! their submap. A registration carries the two anchor stamps and the shift between them;
+//! with `stamps: overlap` a shift found on the grid (every method but the oracle) goes out
+//! instead as the moments the two passes were over the middle of their shared ground (the
+//! submaps' column stamps, [`overlap_stamps`]) with an along-track offset of zero, free of
+//! the wheel's scale error that the grid, laid on wheel distance, puts into a shift.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -68,6 +68,19 @@ pub enum Association {
     Truth,
 }
 
+/// Which two moments a registration found on the submap grid relates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Stamps {
+    /// The two anchors, with the shift between them counted on the grid: in wheel metres, so
+    /// the wheel's scale error enters the measurement.
+    Anchors,
+    /// The two passes' moments over the middle of their shared ground (the submaps'
+    /// `column_stamps_ns`), with an offset of zero: no wheel scale in the measurement, but no
+    /// metric offset for the estimator either (see the README's Localisation section).
+    Overlap,
+}
+
 /// Parameters of the `register` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
@@ -102,6 +115,9 @@ pub struct RegisterParams {
     pub query_spacing_m: f64,
     /// Longest gap between two poses of the association frame that is interpolated, s (default 1).
     pub max_track_gap_s: f64,
+    /// Which moments a grid method's registration relates (default anchors; the oracle always
+    /// sends the ground-truth offset between the anchors).
+    pub stamps: Stamps,
 }
 
 impl Default for RegisterParams {
@@ -120,6 +136,7 @@ impl Default for RegisterParams {
             reference_spacing_m: 0.3,
             query_spacing_m: 0.5,
             max_track_gap_s: 1.0,
+            stamps: Stamps::Anchors,
         }
     }
 }
@@ -426,10 +443,13 @@ impl RegisterStage {
             }
         };
         let sigma = self.params.sigma(learned_sigma);
-        let grid = self.params.method != Method::Oracle;
-        let (stamps_ns, along_m) = match overlap_stamps(r, q, shift_m) {
-            Some(stamps) if grid => (stamps, 0.0),
-            _ => ((r.anchor.stamp_ns, q.anchor.stamp_ns), shift_m),
+        let on_grid = self.params.method != Method::Oracle;
+        let overlap = (on_grid && self.params.stamps == Stamps::Overlap)
+            .then(|| overlap_stamps(r, q, shift_m))
+            .flatten();
+        let (stamps_ns, along_m) = match overlap {
+            Some(stamps) => (stamps, 0.0),
+            None => ((r.anchor.stamp_ns, q.anchor.stamp_ns), shift_m),
         };
         Ok(Some(registration(
             r,
