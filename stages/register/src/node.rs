@@ -14,7 +14,7 @@
 //! their submap. A registration carries the two anchor stamps and the shift between them;
 //! with `stamps: overlap` a shift found on the grid (every method but the oracle) goes out
 //! instead as the moments the two passes were over the middle of their shared ground (the
-//! submaps' column stamps, [`overlap_stamps`]) with an along-track offset of zero, free of
+//! submaps' column stamps, `overlap_stamps`) with an along-track offset of zero, free of
 //! the wheel's scale error that the grid, laid on wheel distance, puts into a shift.
 
 use std::collections::VecDeque;

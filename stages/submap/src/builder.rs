@@ -38,7 +38,8 @@ pub struct Submap {
     pub filled_cols: usize,
     /// `rows x cols`, row-major.
     pub pixels: Vec<f32>,
-    /// When the rig was over each column's centre, ns (see [`column_stamps`]).
+    /// When the rig was over each column's centre, ns: interpolated along travel between
+    /// the bins' mean stamps (`column_stamps`), extended past the ends along the first and last pieces.
     pub column_stamps_ns: Vec<i64>,
 }
 
