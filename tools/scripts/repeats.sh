@@ -13,42 +13,29 @@
 #   REUSE=1 tools/scripts/repeats.sh        # keep the runs already there (their JSON)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
+source tools/scripts/lib/worlds.sh
+script=repeats.sh
 n=4
 by_hand=0
 sets=()
 while [[ $# -gt 0 ]]; do
+    take_common_arg "$@"
+    if [[ $took -gt 0 ]]; then shift "$took"; continue; fi
     case $1 in
-        --by-hand) by_hand=1 ;;
         -n)
             [[ $# -ge 2 && $2 =~ ^[1-9][0-9]*$ ]] || { echo "repeats.sh: -n needs a count" >&2; exit 2; }
             n=$2
-            shift ;;
-        --set)
-            [[ $# -ge 2 && $2 == *=* ]] || { echo "repeats.sh: --set needs KEY=VALUE" >&2; exit 2; }
-            sets+=(--set "$2")
             shift ;;
         *) echo "repeats.sh: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
 done
-tools/scripts/ensure-onnxruntime.sh > /dev/null
-if [[ -z "${GPRFLOW:-}" ]]; then
-    cargo build --release -p gprflow-cli
-fi
-g=${GPRFLOW:-./target/release/gprflow}
+choose_gprflow
+eval_worlds
 out=out/repeats
-worlds=(
-    "basement tools/sim/scenarios/basement.yaml forward_backward"
-    "factory_floor tools/sim/scenarios/factory_floor.yaml forward_backward"
-    "parking_garage tools/sim/scenarios/parking_garage.yaml loops"
-)
-if [[ $by_hand == 1 ]]; then
-    out=out/repeats-by-hand
-    for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
-fi
-# the recordings stay in the plain output folder; runs with other graph variables go next to it
+[[ $by_hand == 1 ]] && out=out/repeats-by-hand
 recs=$out
-for ((i = 1; i < ${#sets[@]}; i += 2)); do out+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
+out=$(sets_folder "$out")
 mkdir -p "$out" "$recs"
 
 for w in "${worlds[@]}"; do

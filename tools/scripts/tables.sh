@@ -14,51 +14,38 @@
 #   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
 #                                      # off its path, the soil dries): out/tables-by-hand,
 #                                      # README markers tables-by-hand:begin / :end
-#   tools/scripts/tables.sh --set across_sigma_m=0.1  # every localisation run with that graph
-#                                      # variable too: out/tables-across_sigma_m=0.1, README untouched
+#   tools/scripts/tables.sh --set stamps=overlap  # every localisation run with that graph
+#                                      # variable too: out/tables-stamps=overlap, README untouched
 #   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
 #   GPRFLOW=target/debug/gprflow tools/scripts/tables.sh   # with the test build
 set -euo pipefail
 cd "$(dirname "$0")/../.."
+source tools/scripts/lib/worlds.sh
+script=tables.sh
 write_readme=1
 by_hand=0
 sets=()
 while [[ $# -gt 0 ]]; do
+    take_common_arg "$@"
+    if [[ $took -gt 0 ]]; then shift "$took"; continue; fi
     case $1 in
         --no-readme) write_readme=0 ;;
-        --by-hand) by_hand=1 ;;
-        --set)
-            [[ $# -ge 2 && $2 == *=* ]] || { echo "tables.sh: --set needs KEY=VALUE" >&2; exit 2; }
-            sets+=(--set "$2")
-            shift ;;
         *) echo "tables.sh: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
 done
-tools/scripts/ensure-onnxruntime.sh > /dev/null
-# GPRFLOW=target/debug/gprflow uses a build already there instead of the release one
-if [[ -z "${GPRFLOW:-}" ]]; then
-    cargo build --release -p gprflow-cli
-fi
-g=${GPRFLOW:-./target/release/gprflow}
+choose_gprflow
+eval_worlds
 out=out/tables
 marker=tables
-# environment name, scenario, run
-worlds=(
-    "basement tools/sim/scenarios/basement.yaml forward_backward"
-    "factory_floor tools/sim/scenarios/factory_floor.yaml forward_backward"
-    "parking_garage tools/sim/scenarios/parking_garage.yaml loops"
-)
 if [[ $by_hand == 1 ]]; then
     out=out/tables-by-hand
     marker=tables-by-hand
-    for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
 fi
-# the recordings stay in the plain output folder; runs with other graph variables go next to it
 recs=$out
 if [[ ${#sets[@]} -gt 0 ]]; then
     write_readme=0
-    for ((i = 1; i < ${#sets[@]}; i += 2)); do out+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
+    out=$(sets_folder "$out")
 fi
 mkdir -p "$out" "$recs"
 models=(engineered zeroth learned nonlinear oracle)

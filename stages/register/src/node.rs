@@ -498,7 +498,7 @@ fn registration(
     r: &Entry,
     q: &Entry,
     stamps_ns: (i64, i64),
-    shift_m: f64,
+    along_m: f64,
     score: f64,
     sigma_m: f64,
     method: &str,
@@ -517,7 +517,7 @@ fn registration(
         query_stamp: Time::from_ns(stamps_ns.1),
         reference_from_query: Pose {
             position: Point {
-                x: shift_m,
+                x: along_m,
                 y: 0.0,
                 z: 0.0,
             },
@@ -529,7 +529,7 @@ fn registration(
             },
         },
         covariance: Covariance6(cov),
-        along_track_m: shift_m,
+        along_track_m: along_m,
         along_track_variance_m2: variance,
         score: score as f32,
         method: method.to_owned(),

@@ -421,10 +421,10 @@ impl SubmapBuilder {
             let centre = (first_index as f64 + c as f64 + 0.5) * res;
             d + f64::from(bin.direction) * (centre - s)
         };
-        let filled_bins = self.bins.iter().filter(|b| b.index - first_index < cols as i64);
+        let bins_inside = self.bins.iter().filter(|b| b.index - first_index < cols as i64);
         // relative to t0, so that f64 keeps nanoseconds
         let column_stamps_ns = column_stamps(
-            filled_bins.map(|b| {
+            bins_inside.map(|b| {
                 let mean_ns = b.stamp_sum_ns / i128::from(b.count) - i128::from(t0);
                 (b.travel_sum_m / f64::from(b.count), mean_ns as f64)
             }),

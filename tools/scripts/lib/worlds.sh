@@ -1,0 +1,47 @@
+# Shared by tools/scripts/tables.sh and tools/scripts/repeats.sh (sourced, not run): their
+# common arguments, the gprflow binary, the evaluation worlds and the output folders.
+# The caller sets `script` (its name, for messages), `by_hand=0` and `sets=()` first.
+
+# Takes `--by-hand` or `--set KEY=VALUE` off the front of "$@": sets `took` to how many
+# arguments that was (0 when the first is neither).
+take_common_arg() {
+    took=0
+    case $1 in
+        --by-hand) by_hand=1; took=1 ;;
+        --set)
+            [[ $# -ge 2 && $2 == *=* ]] || { echo "$script: --set needs KEY=VALUE" >&2; exit 2; }
+            sets+=(--set "$2")
+            took=2 ;;
+    esac
+}
+
+# Sets `g` to the gprflow binary: $GPRFLOW when set (e.g. target/debug/gprflow, the test
+# build), else a release build made here. ONNX Runtime is fetched first.
+choose_gprflow() {
+    tools/scripts/ensure-onnxruntime.sh > /dev/null
+    if [[ -z "${GPRFLOW:-}" ]]; then
+        cargo build --release -p gprflow-cli
+    fi
+    g=${GPRFLOW:-./target/release/gprflow}
+}
+
+# Sets `worlds` to the evaluation worlds, one "name scenario run" per entry: each world's
+# plain run, or its `by_hand` run when by_hand=1.
+eval_worlds() {
+    worlds=(
+        "basement tools/sim/scenarios/basement.yaml forward_backward"
+        "factory_floor tools/sim/scenarios/factory_floor.yaml forward_backward"
+        "parking_garage tools/sim/scenarios/parking_garage.yaml loops"
+    )
+    if [[ $by_hand == 1 ]]; then
+        for i in "${!worlds[@]}"; do worlds[i]="${worlds[i]% *} by_hand"; done
+    fi
+}
+
+# Prints the output folder for base folder $1 and the graph variables in `sets`: the base
+# itself, or "base-key=value..." (the recordings stay in the base, shared by all).
+sets_folder() {
+    local folder=$1 i
+    for ((i = 1; i < ${#sets[@]}; i += 2)); do folder+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
+    echo "$folder"
+}
