@@ -1541,6 +1541,49 @@ fn eval_json(run: &Path, truth: &str) -> serde_json::Value {
 const BASEMENT: &str = "recordings/sim/basement-forward_backward.mcap";
 
 #[test]
+fn calibrate_wheel_measures_the_rigs_scale_and_the_odometry_takes_it() {
+    // the simulated wheel's radius is 1 % above nominal, less what it slips
+    let o = gprflow(&["calibrate-wheel", BASEMENT, "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let c: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    let scale = c["wheel_scale"].as_f64().expect("wheel_scale");
+    assert!((scale - 1.01).abs() < 0.003, "{c}");
+    assert!(c["combined"]["wheel_m"].as_f64().expect("wheel_m") > 40.0, "{c}");
+    // odometry on the recording's own distances, then calibrated
+    let along = |wheel_scale: f64| {
+        let dir = tempfile::tempdir().expect("tempdir");
+        launch_recorded(
+            dir.path(),
+            "graphs/odometry.yaml",
+            &[format!("recording={BASEMENT}"), format!("wheel_scale={wheel_scale}")],
+        );
+        let e = eval_json(&dir.path().join("run.mcap"), BASEMENT);
+        let a = &e["along_track"];
+        (a["mean"].as_f64().expect("mean"), a["rmse"].as_f64().expect("rmse"))
+    };
+    let (raw, calibrated) = (along(1.0), along(scale));
+    assert!(
+        calibrated.0.abs() < 0.3 * raw.0.abs() && calibrated.1 < raw.1,
+        "along-track (mean, rmse): {raw:?} raw, {calibrated:?} calibrated"
+    );
+    // bad input: a recording without a wheel, a scale that is no scale
+    let o = gprflow(&["calibrate-wheel", "recordings/toy.mcap"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("recordings/toy.mcap: no wheel topic"),
+        "{}",
+        stderr(&o)
+    );
+    let o = gprflow(&["launch", "graphs/odometry.yaml", "--set", "wheel_scale=0"]);
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("wheel_scale: must be finite and > 0, got 0"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
 fn localisation_with_engineered_registration_beats_odometry_on_the_basement_run() {
     use gprflow::msg::Registration;
     let dir = tempfile::tempdir().expect("tempdir");

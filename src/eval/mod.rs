@@ -7,10 +7,14 @@
 //! aligned by Umeyama's method without scale when asked; RPE between poses `delta` frames
 //! apart, `E_i = (Q_i^-1 Q_{i+d})^-1 (P_i^-1 P_{i+d})`, translation part, over the pairs
 //! (0, d), (d, 2d), ...
+//!
+//! [`fit_wheel`] calibrates a wheel against the truth (the scale `ingest`'s `wheel_scale` takes).
 
 mod trajectory;
+mod wheel;
 
 pub use trajectory::{PoseTopicKind, Trajectory, TrajectoryError, pose_topics, read_tum, write_tum};
+pub use wheel::{WheelError, WheelFit, WheelTrack, fit_wheel};
 
 use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;

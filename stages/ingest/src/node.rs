@@ -6,7 +6,7 @@ use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use gprflow::msg::{
-    Header, Imu, Message, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, encode,
+    Header, Imu, Message, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode, encode,
 };
 use gprflow::record::{Pace, Player, Recording};
 use gprflow::stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
@@ -58,6 +58,11 @@ pub struct IngestParams {
     /// for truth the pose topic whose name has `truth`).
     #[serde(default)]
     pub topics: TopicMap,
+    /// The wheel's calibration: every wheel distance and speed is multiplied by this (the true
+    /// distance per recorded metre; `gprflow calibrate-wheel` measures it on recordings with
+    /// ground truth). Default 1: the source's own distances.
+    #[serde(default = "one")]
+    pub wheel_scale: f64,
 }
 
 fn one() -> f64 {
@@ -218,6 +223,12 @@ pub fn load(params: &IngestParams) -> Result<Loaded, LoadError> {
             message: format!("must be finite and > 0, got {}", params.trace_interval_s),
         });
     }
+    if !(params.wheel_scale.is_finite() && params.wheel_scale > 0.0) {
+        return Err(LoadError::Param {
+            key: "wheel_scale".into(),
+            message: format!("must be finite and > 0, got {}", params.wheel_scale),
+        });
+    }
     let path = Path::new(&params.source);
     let mut loaded = match detect(path, params.format)? {
         SourceFormat::Mcap | SourceFormat::Auto => load_mcap(path, &params.topics)?,
@@ -250,8 +261,38 @@ pub fn load(params: &IngestParams) -> Result<Loaded, LoadError> {
             l
         }
     };
+    if params.wheel_scale != 1.0 {
+        scale_wheel(&mut loaded, path, params.wheel_scale);
+    }
     loaded.messages.sort_by_key(|m| m.1);
     Ok(loaded)
+}
+
+/// Multiplies every wheel message's distance and speed by `scale`. A wheel payload that does
+/// not decode is left out, with a line in `dropped` (its consumers could not read it either).
+fn scale_wheel(loaded: &mut Loaded, path: &Path, scale: f64) {
+    let mut dropped = Vec::new();
+    loaded.messages.retain_mut(|(port, stamp, payload)| {
+        if *port != Port::Wheel {
+            return true;
+        }
+        match decode::<WheelOdometry>(payload) {
+            Ok(mut w) => {
+                w.distance_m *= scale;
+                w.speed_mps *= scale;
+                *payload = encode(&w);
+                true
+            }
+            Err(e) => {
+                dropped.push(format!(
+                    "{}: wheel message at {stamp} ns: cannot be read to apply wheel_scale ({e}); left out",
+                    path.display()
+                ));
+                false
+            }
+        }
+    });
+    loaded.dropped.extend(dropped);
 }
 
 fn center_frequency(r: &Radargram, params: &IngestParams) -> f64 {
@@ -529,6 +570,7 @@ mod tests {
             trace_interval_s: 0.01,
             center_frequency_hz: None,
             topics: TopicMap::default(),
+            wheel_scale: 1.0,
         }
     }
 
@@ -592,5 +634,52 @@ mod tests {
         })
         .expect_err("refused");
         assert!(e.to_string().starts_with("trace_interval_s:"), "{e}");
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let e = load(&IngestParams {
+                wheel_scale: bad,
+                ..params()
+            })
+            .expect_err("refused");
+            assert!(e.to_string().starts_with("wheel_scale: must be finite and > 0"), "{e}");
+        }
+    }
+
+    #[test]
+    fn wheel_scale_multiplies_distances_and_speeds_and_leaves_out_what_does_not_decode() {
+        let wheel = |d: f64, v: f64| {
+            encode(&WheelOdometry {
+                header: Header::new(0, "odom"),
+                distance_m: d,
+                ticks: 7,
+                speed_mps: v,
+            })
+        };
+        let imu = encode(&Imu::default());
+        let mut l = Loaded {
+            messages: vec![
+                (Port::Wheel, 10, wheel(2.0, 0.5)),
+                (Port::Imu, 15, imu.clone()),
+                (Port::Wheel, 20, vec![1, 2, 3]),
+                (Port::Wheel, 30, wheel(-1.0, -0.25)),
+            ],
+            ..Loaded::default()
+        };
+        scale_wheel(&mut l, Path::new("run.mcap"), 0.99);
+        let stamps: Vec<i64> = l.messages.iter().map(|m| m.1).collect();
+        assert_eq!(stamps, vec![10, 15, 30]);
+        assert_eq!(l.messages[1].2, imu, "other ports untouched");
+        let w: Vec<WheelOdometry> = [0, 2]
+            .iter()
+            .map(|&i| decode(&l.messages[i].2).expect("decodes"))
+            .collect();
+        assert!((w[0].distance_m - 1.98).abs() < 1e-12 && (w[0].speed_mps - 0.495).abs() < 1e-12);
+        assert!((w[1].distance_m + 0.99).abs() < 1e-12 && (w[1].speed_mps + 0.2475).abs() < 1e-12);
+        assert_eq!(w[0].ticks, 7, "ticks are counts: unscaled");
+        assert_eq!(l.dropped.len(), 1);
+        assert!(
+            l.dropped[0].starts_with("run.mcap: wheel message at 20 ns: cannot be read"),
+            "{:?}",
+            l.dropped
+        );
     }
 }

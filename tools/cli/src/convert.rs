@@ -20,6 +20,7 @@ pub fn ingest_params(input: &Path, format: SourceFormat) -> IngestParams {
         trace_interval_s: 0.01,
         center_frequency_hz: None,
         topics: TopicMap::default(),
+        wheel_scale: 1.0,
     }
 }
 

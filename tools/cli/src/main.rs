@@ -176,6 +176,28 @@ enum Command {
         #[arg(long, value_name = "TOPIC")]
         also: Vec<String>,
     },
+    /// The wheel's scale (true ground metres per recorded wheel metre) against ground truth,
+    /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
+    /// `wheel_scale`).
+    ///
+    /// Example: gprflow calibrate-wheel recordings/sim/training_1-*.mcap
+    CalibrateWheel {
+        /// Recordings with wheel odometry and ground truth.
+        #[arg(required = true)]
+        recordings: Vec<PathBuf>,
+        /// Wheel topic (default: the recording's WheelOdometry topic).
+        #[arg(long)]
+        wheel_topic: Option<String>,
+        /// Ground-truth topic.
+        #[arg(long, default_value = gprflow_cli::eval::TRUTH_TOPIC)]
+        truth_topic: String,
+        /// Longest truth gap to interpolate over, ms.
+        #[arg(long, default_value_t = 200.0)]
+        max_gap_ms: f64,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Convert a radar file to a recording, or a recording's trajectory to a TUM file.
     ///
     /// Examples:
@@ -355,6 +377,19 @@ fn main() -> ExitCode {
             write_tum,
             plot,
             also,
+        }),
+        Command::CalibrateWheel {
+            recordings,
+            wheel_topic,
+            truth_topic,
+            max_gap_ms,
+            json,
+        } => gprflow_cli::calibrate::calibrate_wheel(&gprflow_cli::calibrate::CalibrateWheelArgs {
+            recordings,
+            wheel_topic,
+            truth_topic,
+            max_gap_ms,
+            json,
         }),
         Command::Convert {
             input,
