@@ -180,7 +180,8 @@ enum Command {
     /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
     /// `wheel_scale`).
     ///
-    /// Example: gprflow calibrate-wheel recordings/sim/training_1-*.mcap
+    /// Example: gprflow calibrate-wheel recordings/sim/basement-forward_backward.mcap
+    /// (tools/scripts/calibrate-wheel.sh calibrates the simulated rig on the training runs)
     CalibrateWheel {
         /// Recordings with wheel odometry and ground truth.
         #[arg(required = true)]
