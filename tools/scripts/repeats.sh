@@ -9,6 +9,7 @@
 #   tools/scripts/repeats.sh --by-hand -n 6 # repeats 1..6 of the by_hand runs: out/repeats-by-hand
 #   tools/scripts/repeats.sh --set stamps=overlap  # localisation with that graph variable too:
 #                                           # out/repeats-stamps=overlap (same recordings)
+#   tools/scripts/repeats.sh --set wheel_scale=1   # uncalibrated wheel (the odometry runs too)
 #   GPRFLOW=target/debug/gprflow tools/scripts/repeats.sh   # with the test build
 #   REUSE=1 tools/scripts/repeats.sh        # keep the runs already there (their JSON)
 set -euo pipefail
@@ -37,6 +38,7 @@ out=out/repeats
 recs=$out
 out=$(sets_folder "$out")
 mkdir -p "$out" "$recs"
+odometry_only_sets
 
 for w in "${worlds[@]}"; do
     read -r name scenario run <<< "$w"
@@ -47,7 +49,7 @@ for w in "${worlds[@]}"; do
             base="$out/$name-$k-$m"
             [[ "${REUSE:-0}" == 1 && -s "$base.json" ]] && continue
             if [[ $m == odometry ]]; then
-                $g launch graphs/odometry.yaml --set recording="$rec" --record "$base.mcap" > "$base.log" 2>&1
+                $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
             else
                 $g launch graphs/localize.yaml --set recording="$rec" --set method="$m" --set association=truth \
                     "${sets[@]}" --record "$base.mcap" > "$base.log" 2>&1

@@ -16,6 +16,7 @@
 #                                      # README markers tables-by-hand:begin / :end
 #   tools/scripts/tables.sh --set stamps=overlap  # every localisation run with that graph
 #                                      # variable too: out/tables-stamps=overlap, README untouched
+#   tools/scripts/tables.sh --set wheel_scale=1   # uncalibrated wheel (the odometry runs too)
 #   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
 #   GPRFLOW=target/debug/gprflow tools/scripts/tables.sh   # with the test build
 set -euo pipefail
@@ -48,6 +49,7 @@ if [[ ${#sets[@]} -gt 0 ]]; then
     out=$(sets_folder "$out")
 fi
 mkdir -p "$out" "$recs"
+odometry_only_sets
 models=(engineered zeroth learned nonlinear oracle)
 
 for w in "${worlds[@]}"; do
@@ -55,7 +57,7 @@ for w in "${worlds[@]}"; do
     rec="$recs/$name-$run.mcap"
     [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" > /dev/null
     if [[ "${REUSE:-0}" != 1 || ! -s "$out/$name-odometry.json" ]]; then
-        $g launch graphs/odometry.yaml --set recording="$rec" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
+        $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
         $g eval "$out/$name-odometry.mcap" --truth "$rec" --format json > "$out/$name-odometry.json"
     fi
     for m in "${models[@]}"; do

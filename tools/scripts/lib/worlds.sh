@@ -45,3 +45,14 @@ sets_folder() {
     for ((i = 1; i < ${#sets[@]}; i += 2)); do folder+="-${sets[i]//[^A-Za-z0-9_.=]/_}"; done
     echo "$folder"
 }
+
+# Sets `odometry_sets` to the `sets` that graphs/odometry.yaml also has a variable for (the
+# wheel's calibration), so that its runs ride on the same wheel as the localisation runs.
+odometry_only_sets() {
+    odometry_sets=()
+    local i
+    for ((i = 1; i < ${#sets[@]}; i += 2)); do
+        [[ ${sets[i]} == wheel_scale=* ]] && odometry_sets+=(--set "${sets[i]}")
+    done
+    return 0
+}
