@@ -15,7 +15,7 @@ use std::path::PathBuf;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::trajectory::{Trajectory, TrajectoryError};
+use super::trajectory::Trajectory;
 use crate::msg::{self, Message, WheelOdometry};
 use crate::record::Recording;
 
@@ -32,9 +32,6 @@ pub struct WheelTrack {
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum WheelError {
-    /// The recording cannot be read.
-    #[error(transparent)]
-    Trajectory(#[from] TrajectoryError),
     /// No topic of the wheel's type, or not the one asked for.
     #[error("{}: no wheel topic{} ({}); topics: {}", file.display(), topic.as_ref().map(|t| format!(" `{t}`")).unwrap_or_default(), WheelOdometry::TYPE_NAME, available.join(", "))]
     NoWheelTopic {
@@ -123,7 +120,7 @@ pub struct WheelFit {
     pub wheel_m: f64,
     /// Intervals compared (the wheel moved and the truth covers both ends).
     pub intervals: usize,
-    /// Intervals where the wheel moved but the truth has a gap.
+    /// Intervals where the wheel moved but the truth has a gap (or turns half round).
     pub skipped: usize,
 }
 
@@ -159,7 +156,11 @@ pub fn fit_wheel(wheel: &WheelTrack, truth: &Trajectory, max_gap_ns: i64) -> Whe
             fit.skipped += 1;
             continue;
         };
-        let forward = (a.rotation * Vector3::x() + b.rotation * Vector3::x()).normalize();
+        // the mean forward axis (none when the body turned half round within one step)
+        let Some(forward) = (a.rotation * Vector3::x() + b.rotation * Vector3::x()).try_normalize(1e-9) else {
+            fit.skipped += 1;
+            continue;
+        };
         let along = (b.translation.vector - a.translation.vector).dot(&forward);
         fit.ground_m += step.signum() * along;
         fit.wheel_m += step.abs();
@@ -282,5 +283,26 @@ mod tests {
         assert_eq!(both.intervals, 2 * fit.intervals);
         assert_eq!(both.scale(), fit.scale());
         assert_eq!(WheelFit::default().scale(), None);
+    }
+
+    #[test]
+    fn a_step_that_turns_half_round_has_no_forward_axis_and_is_skipped() {
+        let pose = |x: f64, yaw: f64| {
+            Isometry3::from_parts(
+                Translation3::new(x, 0.0, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
+            )
+        };
+        let truth = Trajectory {
+            stamps_ns: vec![0, 10, 20],
+            poses: vec![pose(0.0, 0.0), pose(0.01, 0.0), pose(0.01, std::f64::consts::PI)],
+        };
+        let wheel = WheelTrack {
+            stamps_ns: vec![0, 10, 20],
+            distances_m: vec![0.0, 0.01, 0.02],
+        };
+        let fit = fit_wheel(&wheel, &truth, 100);
+        assert_eq!((fit.intervals, fit.skipped), (1, 1), "{fit:?}");
+        assert!(fit.ground_m.is_finite() && (fit.scale().expect("moved") - 1.0).abs() < 1e-12);
     }
 }

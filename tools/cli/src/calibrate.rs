@@ -5,7 +5,7 @@ use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use gprflow::eval::{Trajectory, WheelFit, WheelTrack, fit_wheel};
 use gprflow::record::Recording;
 use serde::Serialize;
@@ -50,7 +50,7 @@ pub fn calibrate_wheel(args: &CalibrateWheelArgs) -> Result<ExitCode> {
     let mut recordings = Vec::new();
     let mut combined = WheelFit::default();
     for path in &args.recordings {
-        let rec = Recording::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
+        let rec = Recording::open(path)?;
         let wheel = WheelTrack::from_recording(&rec, args.wheel_topic.as_deref())?;
         let truth = Trajectory::from_recording(&rec, &args.truth_topic)?;
         let fit = fit_wheel(&wheel, &truth, max_gap_ns);
