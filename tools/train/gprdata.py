@@ -66,13 +66,19 @@ def simulate(binary, cache_dir, scenario, run):
     return out
 
 
-def build_submaps(binary, recording, spacing_m):
+def wheel_suffix(wheel_scale):
+    """The cache names' mark of a calibrated wheel ("" for the recorded distances)."""
+    return "" if wheel_scale == 1.0 else f"-w{wheel_scale:g}"
+
+
+def build_submaps(binary, recording, spacing_m, wheel_scale=1.0):
     """Runs graphs/submaps.yaml over a recording unless done; returns the submap recording."""
-    out = recording[: -len(".mcap")] + f"-submaps-{spacing_m:g}.mcap"
+    out = recording[: -len(".mcap")] + f"-submaps-{spacing_m:g}{wheel_suffix(wheel_scale)}.mcap"
     if not os.path.exists(out):
         tmp = out[: -len(".mcap")] + ".part.mcap"
         subprocess.run([binary, "launch", "graphs/submaps.yaml", "--set", f"recording={recording}",
-                        "--set", f"spacing_m={spacing_m:g}", "--record", tmp, "--log", "warn"],
+                        "--set", f"spacing_m={spacing_m:g}", "--set", f"wheel_scale={wheel_scale!r}",
+                        "--record", tmp, "--log", "warn"],
                        check=True)
         os.replace(tmp, out)
     return out
@@ -175,12 +181,13 @@ def _legs(backward, low_distance_m, yaw_rad):
     return leg
 
 
-def load_run(binary, cache_dir, scenario, run, spacing_m=0.1, keep_mcap=False):
-    """One run's submaps and truth, decoded once and cached as ``.npz``."""
-    cache = os.path.join(cache_dir, f"{scenario}-{run}-{spacing_m:g}.npz")
+def load_run(binary, cache_dir, scenario, run, spacing_m=0.1, keep_mcap=False, wheel_scale=1.0):
+    """One run's submaps and truth, decoded once and cached as ``.npz``; the submaps laid on
+    the wheel's distances times ``wheel_scale`` (the rig's calibration)."""
+    cache = os.path.join(cache_dir, f"{scenario}-{run}-{spacing_m:g}{wheel_suffix(wheel_scale)}.npz")
     if not os.path.exists(cache):
         rec = simulate(binary, cache_dir, scenario, run)
-        sub = build_submaps(binary, rec, spacing_m)
+        sub = build_submaps(binary, rec, spacing_m, wheel_scale)
         data = decode_submaps(sub)
         data["truth_stamp_ns"], data["truth_pose"] = decode_truth(rec)
         np.savez(cache + ".part.npz", **data)

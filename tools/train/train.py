@@ -539,6 +539,9 @@ def parse_args():
     p.add_argument("--binary", default="target/release/gprflow", help="the gprflow binary")
     p.add_argument("--cache-dir", default="/tmp/train", help="recordings and decoded .npz (big)")
     p.add_argument("--spacing-m", type=float, default=0.1, help="submap spacing for graphs/submaps.yaml")
+    p.add_argument("--wheel-scale", type=float, default=1.0,
+                   help="the rig's wheel calibration for graphs/submaps.yaml (the simulated rig's: 1.01002, "
+                        "tools/scripts/calibrate-wheel.sh; 1: the recorded distances)")
     p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2"])
     p.add_argument("--val-scenario", default="training_3")
     p.add_argument("--runs", nargs="+", default=list(gprdata.RUNS) + ["by_hand"],
@@ -579,7 +582,7 @@ def load_scenario(args, scenario):
     runs = []
     for run in args.runs:
         t = time.time()
-        r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m)
+        r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m, wheel_scale=args.wheel_scale)
         log(f"{scenario} {run}: {len(r.ids)} valid submaps, {r.leg.max() + 1} legs ({time.time() - t:.0f} s)")
         runs.append(r)
     return runs
@@ -717,7 +720,7 @@ def main():
     counts["train"]["truth_cross_pass"] = int(((pairs.kind == "truth") & ~is_val & pairs.cross_pass).sum())
     counts["held_out"]["truth_cross_pass"] = int(((pairs.kind == "truth") & is_val & pairs.cross_pass).sum())
     training = {"scenarios": {"train": args.train_scenarios, "held_out": args.val_scenario, "runs": list(args.runs)},
-                "submaps": {"spacing_m": args.spacing_m, "valid": {r.scenario + "/" + r.run: int(len(r.ids)) for r in runs}},
+                "submaps": {"spacing_m": args.spacing_m, "wheel_scale": args.wheel_scale, "valid": {r.scenario + "/" + r.run: int(len(r.ids)) for r in runs}},
                 "pairs": counts,
                 "pair_rules": {"cross_track_m": gprdata.CROSS_TRACK_M, "heading_deg": 15.0,
                                "max_target_m": gprdata.MAX_TARGET_M, "apart_m": gprdata.APART_M},
