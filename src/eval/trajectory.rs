@@ -42,7 +42,17 @@ pub enum TrajectoryError {
         /// Pose topics there are.
         available: Vec<String>,
     },
-    /// A message cannot be decoded.
+    /// No wheel odometry topic, or not the one asked for.
+    #[error("{}: no wheel topic{} ({}); topics: {}", file.display(), topic.as_ref().map(|t| format!(" `{t}`")).unwrap_or_default(), <crate::msg::WheelOdometry as crate::msg::Message>::TYPE_NAME, available.join(", "))]
+    NoWheelTopic {
+        /// The recording.
+        file: PathBuf,
+        /// The topic asked for, if one was.
+        topic: Option<String>,
+        /// Its topics, with their types.
+        available: Vec<String>,
+    },
+    /// A message cannot be decoded (or holds a value that cannot be used).
     #[error("{}: {topic} seq {seq}: {reason}", file.display())]
     Decode {
         /// The recording.
@@ -134,50 +144,31 @@ impl Trajectory {
         };
         let kind = *kind;
         let mut out = Self::default();
-        let mut failure = None;
-        let (_, stopped) = rec.scan(|m| {
-            if m.topic != wanted || failure.is_some() {
-                return;
-            }
-            let fail = |reason: String| TrajectoryError::Decode {
-                file: file.clone(),
-                topic: wanted.clone(),
-                seq: m.sequence,
-                reason,
-            };
-            let decoded = match kind {
+        scan_topic(rec, &wanted, |data| {
+            let poses = match kind {
                 PoseTopicKind::PoseStamped => {
-                    msg::decode::<PoseStamped>(m.data).map(|p| vec![(p.header.stamp.to_ns(), isometry(&p.pose))])
+                    msg::decode::<PoseStamped>(data).map(|p| vec![(p.header.stamp.to_ns(), isometry(&p.pose))])
                 }
                 PoseTopicKind::Odometry => {
-                    msg::decode::<Odometry>(m.data).map(|o| vec![(o.header.stamp.to_ns(), isometry(&o.pose.pose))])
+                    msg::decode::<Odometry>(data).map(|o| vec![(o.header.stamp.to_ns(), isometry(&o.pose.pose))])
                 }
-                PoseTopicKind::StateEstimate => msg::decode::<StateEstimate>(m.data)
+                PoseTopicKind::StateEstimate => msg::decode::<StateEstimate>(data)
                     .map(|s| vec![(s.header.stamp.to_ns(), isometry(&s.world_from_body.pose))]),
-                PoseTopicKind::Snapshot => msg::decode::<TrajectoryMsg>(m.data).map(|t| {
+                PoseTopicKind::Snapshot => msg::decode::<TrajectoryMsg>(data).map(|t| {
                     out = Self::default(); // only the last snapshot counts
                     t.poses
                         .iter()
                         .map(|p| (p.header.stamp.to_ns(), isometry(&p.pose)))
                         .collect()
                 }),
-            };
-            match decoded {
-                Ok(poses) => {
-                    for (stamp, pose) in poses {
-                        out.stamps_ns.push(stamp);
-                        out.poses.push(pose);
-                    }
-                }
-                Err(e) => failure = Some(fail(e.to_string())),
             }
-        });
-        if let Some(e) = failure {
-            return Err(e);
-        }
-        if let Some(reason) = stopped {
-            tracing::warn!("{}: read stopped early: {reason}", file.display());
-        }
+            .map_err(|e| e.to_string())?;
+            for (stamp, pose) in poses {
+                out.stamps_ns.push(stamp);
+                out.poses.push(pose);
+            }
+            Ok(())
+        })?;
         out.sort();
         Ok(out)
     }
@@ -229,6 +220,37 @@ impl Trajectory {
         let r = p0.rotation.slerp(&p1.rotation, f);
         Some(Isometry3::from_parts(Translation3::from(t), r))
     }
+}
+
+/// Visits the payload of every message on `topic` (in log order) until `visit` refuses one;
+/// its reason comes back as [`TrajectoryError::Decode`] with the topic and seq. A read that
+/// stops early keeps what came before it, with a warning.
+pub(super) fn scan_topic(
+    rec: &Recording,
+    topic: &str,
+    mut visit: impl FnMut(&[u8]) -> Result<(), String>,
+) -> Result<(), TrajectoryError> {
+    let mut failure = None;
+    let (_, stopped) = rec.scan(|m| {
+        if m.topic != topic || failure.is_some() {
+            return;
+        }
+        if let Err(reason) = visit(m.data) {
+            failure = Some(TrajectoryError::Decode {
+                file: rec.path().to_owned(),
+                topic: topic.to_owned(),
+                seq: m.sequence,
+                reason,
+            });
+        }
+    });
+    if let Some(e) = failure {
+        return Err(e);
+    }
+    if let Some(reason) = stopped {
+        tracing::warn!("{}: read stopped early: {reason}", rec.path().display());
+    }
+    Ok(())
 }
 
 /// Writes a trajectory as TUM text: `stamp_s x y z qx qy qz qw` per line.

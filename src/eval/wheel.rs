@@ -10,12 +10,10 @@
 //! `wheel_scale`). It absorbs the encoder's radius error and the mean slip of the
 //! recordings' driving.
 
-use std::path::PathBuf;
-
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::trajectory::Trajectory;
+use super::trajectory::{Trajectory, TrajectoryError, scan_topic};
 use crate::msg::{self, Message, WheelOdometry};
 use crate::record::Recording;
 
@@ -28,34 +26,6 @@ pub struct WheelTrack {
     pub distances_m: Vec<f64>,
 }
 
-/// Problems reading wheel odometry.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum WheelError {
-    /// No topic of the wheel's type, or not the one asked for.
-    #[error("{}: no wheel topic{} ({}); topics: {}", file.display(), topic.as_ref().map(|t| format!(" `{t}`")).unwrap_or_default(), WheelOdometry::TYPE_NAME, available.join(", "))]
-    NoWheelTopic {
-        /// The recording.
-        file: PathBuf,
-        /// The topic asked for, if one was.
-        topic: Option<String>,
-        /// Its topics.
-        available: Vec<String>,
-    },
-    /// A wheel message cannot be decoded or holds a non-finite distance.
-    #[error("{}: {topic} seq {seq}: {reason}", file.display())]
-    Decode {
-        /// The recording.
-        file: PathBuf,
-        /// Topic.
-        topic: String,
-        /// Sequence number.
-        seq: u32,
-        /// Why.
-        reason: String,
-    },
-}
-
 impl WheelTrack {
     /// The wheel odometry on `topic` (default: the recording's topic of type
     /// `WheelOdometry`).
@@ -63,8 +33,7 @@ impl WheelTrack {
     /// # Errors
     /// No such topic (naming the topics there are), an undecodable message or a non-finite
     /// distance (topic, seq and field).
-    pub fn from_recording(rec: &Recording, topic: Option<&str>) -> Result<Self, WheelError> {
-        let file = rec.path().to_owned();
+    pub fn from_recording(rec: &Recording, topic: Option<&str>) -> Result<Self, TrajectoryError> {
         let topics = rec.topics();
         let wanted = topic.map(|t| format!("/{}", t.trim_start_matches('/')));
         let found = topics
@@ -72,36 +41,21 @@ impl WheelTrack {
             .find(|(name, ty)| ty == WheelOdometry::TYPE_NAME && wanted.as_ref().is_none_or(|w| w == name))
             .map(|(name, _)| name.clone());
         let Some(found) = found else {
-            return Err(WheelError::NoWheelTopic {
-                file,
+            return Err(TrajectoryError::NoWheelTopic {
+                file: rec.path().to_owned(),
                 topic: wanted,
                 available: topics.into_iter().map(|(t, ty)| format!("{t} ({ty})")).collect(),
             });
         };
         let mut readings = Vec::new();
-        let mut failure = None;
-        let (_, stopped) = rec.scan(|m| {
-            if m.topic != found || failure.is_some() {
-                return;
+        scan_topic(rec, &found, |data| {
+            let w = msg::decode::<WheelOdometry>(data).map_err(|e| e.to_string())?;
+            if !w.distance_m.is_finite() {
+                return Err(format!("distance_m is {}", w.distance_m));
             }
-            let fail = |reason: String| WheelError::Decode {
-                file: file.clone(),
-                topic: found.clone(),
-                seq: m.sequence,
-                reason,
-            };
-            match msg::decode::<WheelOdometry>(m.data) {
-                Ok(w) if w.distance_m.is_finite() => readings.push((w.header.stamp.to_ns(), w.distance_m)),
-                Ok(w) => failure = Some(fail(format!("distance_m is {}", w.distance_m))),
-                Err(e) => failure = Some(fail(e.to_string())),
-            }
-        });
-        if let Some(e) = failure {
-            return Err(e);
-        }
-        if let Some(reason) = stopped {
-            tracing::warn!("{}: read stopped early: {reason}", file.display());
-        }
+            readings.push((w.header.stamp.to_ns(), w.distance_m));
+            Ok(())
+        })?;
         readings.sort_by_key(|r| r.0);
         Ok(Self {
             stamps_ns: readings.iter().map(|r| r.0).collect(),

@@ -46,13 +46,16 @@ sets_folder() {
     echo "$folder"
 }
 
-# Sets `odometry_sets` to the `sets` that graphs/odometry.yaml also has a variable for (the
-# wheel's calibration), so that its runs ride on the same wheel as the localisation runs.
+# Sets `odometry_sets` to the `sets` that graphs/odometry.yaml declares a variable for (as
+# `gprflow check` says; the wheel's calibration is one), so that its runs ride on the same
+# wheel as the localisation runs. Needs `g` (choose_gprflow).
 odometry_only_sets() {
     odometry_sets=()
     local i
     for ((i = 1; i < ${#sets[@]}; i += 2)); do
-        [[ ${sets[i]} == wheel_scale=* ]] && odometry_sets+=(--set "${sets[i]}")
+        if $g check graphs/odometry.yaml --set "${sets[i]}" > /dev/null 2>&1; then
+            odometry_sets+=(--set "${sets[i]}")
+        fi
     done
     return 0
 }
