@@ -662,6 +662,8 @@ fn bad_input_gets_clear_errors() {
     let o = gprflow(&["inspect", "does-not-exist.mcap"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(stderr(&o).contains("does-not-exist.mcap"), "{}", stderr(&o));
+    // the OS's reason once, not again as the error's source
+    assert_eq!(stderr(&o).matches("os error 2").count(), 1, "{}", stderr(&o));
     let dir = tempfile::tempdir().expect("tempdir");
     let junk = dir.path().join("junk.mcap");
     std::fs::write(&junk, b"not an mcap file at all").expect("write");

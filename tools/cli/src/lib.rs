@@ -10,6 +10,25 @@ pub mod plot;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
+
+/// An error and its causes on one line, `outer: cause: ...`, leaving out a cause whose text
+/// the line already holds (error types that name their source in their own message, such as
+/// `RecordError::Io`, would otherwise print it twice).
+#[must_use]
+pub fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
+}
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
 use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
@@ -89,5 +108,30 @@ pub fn run_stage(
                 .collect::<Vec<_>>()
                 .join(", ")
         ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::error_line;
+    use anyhow::Context;
+
+    #[test]
+    fn error_line_names_each_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "no such file");
+        let record = gprflow::record::RecordError::Io {
+            path: "/x.mcap".into(),
+            source: io,
+        };
+        let e = anyhow::Error::new(record);
+        assert_eq!(error_line(&e), "/x.mcap: no such file");
+        let e = e.context("cannot evaluate");
+        assert_eq!(error_line(&e), "cannot evaluate: /x.mcap: no such file");
+        // causes that are not repeated all show, outermost first
+        let e = Err::<(), _>(std::io::Error::other("disk full"))
+            .context("writing out.mcap")
+            .context("recording")
+            .expect_err("an error");
+        assert_eq!(error_line(&e), "recording: writing out.mcap: disk full");
     }
 }

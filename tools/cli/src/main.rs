@@ -488,7 +488,7 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", gprflow_cli::error_line(&e));
             ExitCode::from(2)
         }
     }
