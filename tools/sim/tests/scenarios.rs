@@ -62,8 +62,17 @@ fn footprint(scenario: &Scenario) -> [f64; 4] {
 fn training_areas_never_overlap_the_evaluation_worlds() {
     let load = |name: &str| Scenario::load(&scenarios_dir().join(name)).expect("scenario");
     let margin = 50.0;
-    for training in ["training_1.yaml", "training_2.yaml", "training_3.yaml"] {
-        let t = footprint(&load(training));
+    let training: Vec<PathBuf> = shipped()
+        .into_iter()
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("training_"))
+        })
+        .collect();
+    assert!(training.len() >= 3, "training scenarios: {training:?}");
+    for file in &training {
+        let training = file.display();
+        let t = footprint(&Scenario::load(file).expect("scenario"));
         for eval in ["basement.yaml", "factory_floor.yaml", "parking_garage.yaml"] {
             let e = footprint(&load(eval));
             let apart = t[0] > e[2] + margin || e[0] > t[2] + margin || t[1] > e[3] + margin || e[1] > t[3] + margin;
