@@ -67,11 +67,8 @@ while read -r v; do
     rec=$out/$v.mcap
     [[ -f $rec ]] || $g sim "$out/$v.yaml" -o "$rec" --run by_hand --repeat "$k" > /dev/null
     for m in learned oracle; do
-        base=$out/$v-$m
-        $g launch graphs/localize.yaml --set recording="$rec" --set method="$m" --set association=truth \
-            --record "$base.mcap" > "$base.log" 2>&1
-        $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
-        rm -f "$base.mcap"
+        localise "$rec" "$m" "$out/$v-$m"
+        rm -f "$out/$v-$m.mcap"
     done
     echo "$v done" >&2
 done < "$out/variants.txt"

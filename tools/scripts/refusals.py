@@ -55,8 +55,9 @@ def main():
     if not rows:
         sys.exit(f"refusals.py: {args.log}: no refused pair (was the log run with gprflow_register=debug?)")
     why = np.array([r[0] for r in rows])
-    pr, qr = truth_at(np.loadtxt(args.truth, ndmin=2), np.array([r[1] for r in rows]))
-    pq, qq = truth_at(np.loadtxt(args.truth, ndmin=2), np.array([r[2] for r in rows]))
+    tum = np.loadtxt(args.truth, ndmin=2)
+    pr, qr = truth_at(tum, np.array([r[1] for r in rows]))
+    pq, qq = truth_at(tum, np.array([r[2] for r in rows]))
     d = pq - pr
     fwd, left = rotate(qr, np.tile([1.0, 0, 0], (len(rows), 1))), rotate(qr, np.tile([0, 1.0, 0], (len(rows), 1)))
     along, across = np.sum(d * fwd, axis=1), np.sum(d * left, axis=1)

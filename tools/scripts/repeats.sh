@@ -50,11 +50,10 @@ for w in "${worlds[@]}"; do
             [[ "${REUSE:-0}" == 1 && -s "$base.json" ]] && continue
             if [[ $m == odometry ]]; then
                 $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
+                $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
             else
-                $g launch graphs/localize.yaml --set recording="$rec" --set method="$m" --set association=truth \
-                    "${sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
+                localise "$rec" "$m" "$base" "${sets[@]}"
             fi
-            $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
             rm -f "$base.mcap"
         done
         echo "$name repeat $k done" >&2

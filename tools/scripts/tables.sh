@@ -68,9 +68,7 @@ for w in "${worlds[@]}"; do
             method=learned
             extra=(--set head=stages/register/models/ground_encoding.nonlinear.json)
         fi
-        $g launch graphs/localize.yaml --set recording="$rec" --set method="$method" --set association=truth \
-            "${extra[@]}" "${sets[@]}" --record "$out/$name-$m.mcap" > "$out/$name-$m.log" 2>&1
-        $g eval "$out/$name-$m.mcap" --truth "$rec" --format json > "$out/$name-$m.json"
+        localise "$rec" "$method" "$out/$name-$m" "${extra[@]}" "${sets[@]}"
         echo "$name $m done" >&2
     done
 done

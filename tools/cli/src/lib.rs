@@ -10,25 +10,6 @@ pub mod plot;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
-
-/// An error and its causes on one line, `outer: cause: ...`, leaving out a cause whose text
-/// the line already holds (error types that name their source in their own message, such as
-/// `RecordError::Io`, would otherwise print it twice).
-#[must_use]
-pub fn error_line(e: &anyhow::Error) -> String {
-    let mut line = String::new();
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if line.contains(&text) {
-            continue;
-        }
-        if !line.is_empty() {
-            line.push_str(": ");
-        }
-        line.push_str(&text);
-    }
-    line
-}
 use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
 use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
@@ -38,6 +19,26 @@ use gprflow_lines::node::LinesStage;
 use gprflow_register::node::RegisterStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
+
+/// An error and its causes on one line, `outer: cause: ...`, leaving out a cause whose text
+/// ends the message of the error it explains (error types that name their source in their own
+/// message, such as `RecordError::Io`, would otherwise print it twice).
+#[must_use]
+pub fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    let mut outer = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if !outer.ends_with(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
+        }
+        outer = text;
+    }
+    line
+}
 
 /// Every stage kind this build can run.
 pub fn catalog() -> StageCatalog {

@@ -1,5 +1,6 @@
 # Shared by tools/scripts/tables.sh and tools/scripts/repeats.sh (sourced, not run): their
-# common arguments, the gprflow binary, the evaluation worlds and the output folders.
+# common arguments, the gprflow binary, the evaluation worlds, the output folders and the
+# localisation run they all make.
 # The caller sets `script` (its name, for messages), `by_hand=0` and `sets=()` first.
 
 # Takes `--by-hand` or `--set KEY=VALUE` off the front of "$@": sets `took` to how many
@@ -58,4 +59,16 @@ odometry_only_sets() {
         fi
     done
     return 0
+}
+
+# Localises recording $1 with method $2 (graphs/localize.yaml, oracle association: the
+# candidate pairs from the truth, as every table here uses) and evaluates it against the
+# recording's truth: $3.mcap, $3.log and $3.json. Further arguments go to the launch (e.g.
+# "${sets[@]}"). Needs `g` (choose_gprflow).
+localise() {
+    local rec=$1 method=$2 base=$3
+    shift 3
+    $g launch graphs/localize.yaml --set recording="$rec" --set method="$method" --set association=truth \
+        "$@" --record "$base.mcap" > "$base.log" 2>&1
+    $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
 }

@@ -71,12 +71,11 @@ fn training_areas_never_overlap_the_evaluation_worlds() {
         .collect();
     assert!(training.len() >= 3, "training scenarios: {training:?}");
     for file in &training {
-        let training = file.display();
         let t = footprint(&Scenario::load(file).expect("scenario"));
         for eval in ["basement.yaml", "factory_floor.yaml", "parking_garage.yaml"] {
             let e = footprint(&load(eval));
             let apart = t[0] > e[2] + margin || e[0] > t[2] + margin || t[1] > e[3] + margin || e[1] > t[3] + margin;
-            assert!(apart, "{training} {t:?} overlaps {eval} {e:?}");
+            assert!(apart, "{} {t:?} overlaps {eval} {e:?}", file.display());
         }
     }
 }
