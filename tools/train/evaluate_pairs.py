@@ -44,8 +44,8 @@ def without_eigenimages(pixels, count):
     return out
 
 
-def evaluate(args, scenario, run):
-    r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m)
+def evaluate(args, head, scenario, run):
+    r = gprdata.load_run(args.binary, args.cache_dir, scenario, run, args.spacing_m, wheel_scale=args.wheel_scale)
     pairs = gprdata.truth_pairs([r], np.random.default_rng(args.seed), per_submap=3, apart_per_submap=1)
     cross = (pairs.kind == "truth") & pairs.cross_pass
     apart = pairs.kind == "apart"
@@ -55,7 +55,6 @@ def evaluate(args, scenario, run):
 
     import onnxruntime as ort
 
-    head = json.load(open(args.head))
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
     sess = ort.InferenceSession(args.model, so)
@@ -94,17 +93,23 @@ def main():
     p.add_argument("--spacing-m", type=float, default=0.1)
     p.add_argument("--model", default=os.path.join(train.MODELS_DIR, train.ONNX_NAME))
     p.add_argument("--head", default=os.path.join(train.MODELS_DIR, "ground_encoding.head.json"))
+    p.add_argument("--wheel-scale", type=float, default=None,
+                   help="the wheel calibration the submaps are laid on (default: the one the head was trained "
+                        "with, its training block; 1 if it names none)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--remove-eigenimages", type=int, default=0, metavar="N",
                    help="take each submap's N largest singular components out first (both models; a test of "
                         "what the banding costs, not part of the pipeline)")
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a table")
     args = p.parse_args()
+    head = json.load(open(args.head))
+    if args.wheel_scale is None:
+        args.wheel_scale = float(head.get("training", {}).get("submaps", {}).get("wheel_scale", 1.0))
     os.makedirs(args.cache_dir, exist_ok=True)
     rows = []
     for spec in args.runs:
         scenario, _, run = spec.partition(":")
-        rows.append(evaluate(args, scenario, run or "by_hand"))
+        rows.append(evaluate(args, head, scenario, run or "by_hand"))
         if args.json:
             print(json.dumps(rows[-1]), flush=True)
     if args.json:
