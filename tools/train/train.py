@@ -15,8 +15,8 @@ scenario, and writes
 * stages/register/models/ground_encoding.head.json (linear) and ...nonlinear.json,
 * stages/register/tests/fixtures/learned/ (parity fixtures: manifest.json and *.f32).
 
-Retrain (from the repository root; about 15 minutes on 2 CPU cores with the cache and
-``--threads 2``, another 20 the first time to simulate and decode; the defaults are the committed model's settings)::
+Retrain (from the repository root; about 10 minutes on 2 CPU cores with the cache, another
+10 the first time to simulate and decode; the defaults are the committed model's settings)::
 
     python3 -m venv .venv-train && .venv-train/bin/pip install -r tools/train/requirements.txt
     .venv-train/bin/python tools/train/train.py --cache-dir /tmp/train
@@ -539,10 +539,10 @@ def parse_args():
     p.add_argument("--binary", default="target/release/gprflow", help="the gprflow binary")
     p.add_argument("--cache-dir", default="/tmp/train", help="recordings and decoded .npz (big)")
     p.add_argument("--spacing-m", type=float, default=0.1, help="submap spacing for graphs/submaps.yaml")
-    p.add_argument("--wheel-scale", type=float, default=1.01002,
+    p.add_argument("--wheel-scale", type=float, default=1.0,
                    help="the rig's wheel calibration for graphs/submaps.yaml (the simulated rig's: 1.01002, "
                         "tools/scripts/calibrate-wheel.sh; 1: the recorded distances)")
-    p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2", "training_4", "training_5"])
+    p.add_argument("--train-scenarios", nargs="+", default=["training_1", "training_2"])
     p.add_argument("--val-scenario", default="training_3")
     p.add_argument("--runs", nargs="+", default=list(gprdata.RUNS) + ["by_hand"],
                    help="the runs of each scenario to use (by_hand: wandering, drying, uneven ground contact)")
