@@ -35,6 +35,7 @@ import math
 import os
 import sys
 import time
+import zlib
 
 import numpy as np
 
@@ -493,6 +494,13 @@ def write_json(path, obj):
         f.write("\n")
 
 
+def encoder_crc32(onnx_path):
+    """The head's ``encoder_crc32`` (SPEC "Head"): CRC-32 of the encoder file, 8 hex digits;
+    the register stage refuses the head with any other encoder file."""
+    with open(onnx_path, "rb") as f:
+        return f"{zlib.crc32(f.read()):08x}"
+
+
 def calibrate_heads(heads, v, pairs, is_val):
     """Each head's channel agreement check (chosen on the training scenarios' truth pairs from
     other passes that pass ``share_threshold``) and ``sigma_m`` (held-out truth pairs that pass
@@ -639,7 +647,9 @@ def calibrate(args, scenarios):
     v = correlation_vectors(features, pairs, resolution_m, heads["linear"]["column_stride"])
     log(f"correlation vectors {v.shape} ({time.time() - t:.0f} s)")
     report = calibrate_heads(heads, v, pairs, is_val)
+    crc = encoder_crc32(os.path.join(args.models_dir, ONNX_NAME))
     for kind, head in heads.items():
+        head["encoder_crc32"] = crc
         head["training"] = dict(head["training"], agreement=report,
                                 calibrated={"date": datetime.date.today().isoformat(),
                                             "command": "python " + " ".join(["tools/train/train.py"] + sys.argv[1:])})
@@ -878,6 +888,7 @@ def export(args, encoder, heads, images, runs, pairs, is_val, resolution_m):
     log(f"onnxruntime {ort.__version__}, 1 intra-op thread, {images[0].shape[1]} x {images[0].shape[2]}: "
         f"median {ms['median_ms']:.3f} ms, p90 {ms['p90_ms']:.3f} ms")
     for kind, head in heads.items():
+        head["encoder_crc32"] = encoder_crc32(onnx_path)
         head["training"] = dict(head["training"], onnx_ms_one_thread=ms, onnx_bytes=os.path.getsize(onnx_path))
         write_json(os.path.join(args.models_dir, HEAD_NAMES[kind]), head)
     write_fixtures(args, sess, heads, runs, pairs, is_val, resolution_m)

@@ -872,6 +872,9 @@ pub struct Head {
     pub sigma_m: f64,
     /// Mean target of the training pairs (the zeroth-order model), m.
     pub zeroth_m: f64,
+    /// CRC-32 of the encoder file the head was fitted on, when the file names one: a head
+    /// fits only its own encoder's features.
+    pub encoder_crc32: Option<u32>,
     /// The file's free-form `training` record (`null` when absent).
     pub training: Value,
     mean: Vec<f64>,
@@ -978,6 +981,7 @@ const HEAD_KEYS: &[&str] = &[
     "agreement",
     "sigma_m",
     "zeroth_m",
+    "encoder_crc32",
     "training",
 ];
 
@@ -1046,6 +1050,14 @@ impl Head {
             return Err(rd.error("sigma_m", format!("{sigma_m}, expected > 0")));
         }
         let zeroth_m = rd.number(rd.field(obj, "", "zeroth_m")?, "zeroth_m")?;
+        let encoder_crc32 = match obj.get("encoder_crc32") {
+            None | Some(Value::Null) => None,
+            Some(value) => {
+                let text = rd.string(value, "encoder_crc32")?;
+                let parsed = (text.len() == 8).then(|| u32::from_str_radix(text, 16).ok()).flatten();
+                Some(parsed.ok_or_else(|| rd.error("encoder_crc32", format!("{text:?}, expected 8 hex digits")))?)
+            }
+        };
         Ok(Head {
             kind,
             channels,
@@ -1056,6 +1068,7 @@ impl Head {
             agreement,
             sigma_m,
             zeroth_m,
+            encoder_crc32,
             training: obj.get("training").cloned().unwrap_or(Value::Null),
             mean,
             std,
@@ -1221,9 +1234,27 @@ impl Model {
     /// [`Encoder::load`].
     ///
     /// # Errors
-    /// See [`Encoder::load`] and [`Head::from_json`].
+    /// See [`Encoder::load`] and [`Head::from_json`]; [`Error::Head`] (`encoder_crc32`) when
+    /// the head names another encoder file than `onnx`.
     pub fn load(onnx: &Path, head_json: &Path, ort_library: Option<&Path>) -> Result<Model> {
         let head = Head::from_json(head_json)?;
+        if let Some(expected) = head.encoder_crc32 {
+            let bytes = std::fs::read(onnx).map_err(|source| Error::Io {
+                path: onnx.to_path_buf(),
+                source,
+            })?;
+            let found = crc32fast::hash(&bytes);
+            if found != expected {
+                return Err(Error::Head {
+                    file: head_json.to_path_buf(),
+                    field: "encoder_crc32".into(),
+                    message: format!(
+                        "{expected:08x}, but {} has {found:08x}: the head was fitted on another encoder (give the model's encoder and head together)",
+                        onnx.display()
+                    ),
+                });
+            }
+        }
         let encoder = Encoder::load(onnx, ort_library)?;
         Ok(Model {
             encoder,
@@ -1701,6 +1732,14 @@ mod tests {
                     "\"share_threshold\": 0.3, \"agreement\": {\"tolerance_m\": 0.05, \"min_fraction\": 0.5, \"x\": 1}",
                 ),
                 "agreement.x: unknown field",
+            ),
+            (
+                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": \"12345\""),
+                "encoder_crc32: \"12345\", expected 8 hex digits",
+            ),
+            (
+                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": \"1234567g\""),
+                "encoder_crc32: \"1234567g\", expected 8 hex digits",
             ),
             ("[1, 2".to_string(), "(file): not JSON"),
             ("[]".to_string(), "(file): expected an object"),
