@@ -1734,11 +1734,15 @@ mod tests {
                 "agreement.x: unknown field",
             ),
             (
-                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": \"12345\""),
+                head_json("linear", one)
+                    .replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": \"12345\""),
                 "encoder_crc32: \"12345\", expected 8 hex digits",
             ),
             (
-                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": \"1234567g\""),
+                head_json("linear", one).replace(
+                    "\"zeroth_m\": 0.1",
+                    "\"zeroth_m\": 0.1, \"encoder_crc32\": \"1234567g\"",
+                ),
                 "encoder_crc32: \"1234567g\", expected 8 hex digits",
             ),
             ("[1, 2".to_string(), "(file): not JSON"),

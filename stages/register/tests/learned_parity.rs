@@ -236,21 +236,35 @@ fn a_head_fitted_on_another_encoder_is_refused() {
     let head = root.join("stages/register/models/ground_encoding.head.json");
     let text = std::fs::read_to_string(&head).expect("head");
     let json: Value = serde_json::from_str(&text).expect("head JSON");
-    let crc = json["encoder_crc32"].as_str().expect("the committed head names its encoder's CRC-32");
+    let crc = json["encoder_crc32"]
+        .as_str()
+        .expect("the committed head names its encoder's CRC-32");
     // with its own encoder it loads (trained_model_matches_its_fixtures runs it)
-    Model::load(&root.join("stages/register/models/ground_encoding.onnx"), &head, Some(&lib)).expect("own encoder");
+    Model::load(
+        &root.join("stages/register/models/ground_encoding.onnx"),
+        &head,
+        Some(&lib),
+    )
+    .expect("own encoder");
     // with another encoder file (same shape or not) it is refused, naming both files
     let e = Model::load(&tiny("tiny_encoder.onnx"), &head, Some(&lib)).expect_err("another encoder");
     assert!(matches!(e, Error::Head { .. }), "{e:?}");
     let message = e.to_string();
-    assert!(message.contains("ground_encoding.head.json: encoder_crc32"), "{message}");
-    assert!(message.contains(crc) && message.contains("tiny_encoder.onnx has "), "{message}");
+    assert!(
+        message.contains("ground_encoding.head.json: encoder_crc32"),
+        "{message}"
+    );
+    assert!(
+        message.contains(crc) && message.contains("tiny_encoder.onnx has "),
+        "{message}"
+    );
     // a head naming no encoder is not checked (heads written before the field existed)
     let unchecked = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("head_without_encoder_crc32.json");
     let mut json = json;
     json.as_object_mut().expect("object").remove("encoder_crc32");
     std::fs::write(&unchecked, serde_json::to_string(&json).expect("JSON")).expect("write");
-    Model::load(&tiny("tiny_encoder.onnx"), &unchecked, Some(&lib)).expect("a head without the field loads with any encoder");
+    Model::load(&tiny("tiny_encoder.onnx"), &unchecked, Some(&lib))
+        .expect("a head without the field loads with any encoder");
 }
 
 #[test]
