@@ -103,6 +103,7 @@ def main():
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a table")
     args = p.parse_args()
     head = json.load(open(args.head))
+    train.check_encoder(head, args.head, args.model)
     if args.wheel_scale is None:
         args.wheel_scale = float(head.get("training", {}).get("submaps", {}).get("wheel_scale", 1.0))
     os.makedirs(args.cache_dir, exist_ok=True)

@@ -501,6 +501,15 @@ def encoder_crc32(onnx_path):
         return f"{zlib.crc32(f.read()):08x}"
 
 
+def check_encoder(head, head_path, onnx_path):
+    """Exits naming both files when ``head`` (read from ``head_path``) names another encoder
+    file than ``onnx_path`` (its ``encoder_crc32``; a head without one is not checked)."""
+    expected = head.get("encoder_crc32")
+    if expected is not None and expected != encoder_crc32(onnx_path):
+        sys.exit(f"{head_path}: encoder_crc32: {expected}, but {onnx_path} has {encoder_crc32(onnx_path)}: "
+                 "the head was fitted on another encoder (give the model's encoder and head together)")
+
+
 def calibrate_heads(heads, v, pairs, is_val):
     """Each head's channel agreement check (chosen on the training scenarios' truth pairs from
     other passes that pass ``share_threshold``) and ``sigma_m`` (held-out truth pairs that pass
