@@ -1343,6 +1343,38 @@ impl Model {
         resolution_m: f64,
     ) -> Result<(LearnedMatch, Option<Refusal>)> {
         let corr = self.correlate(reference, query, resolution_m)?;
+        Ok(self.decide(corr))
+    }
+
+    /// [`Model::assess`] of the query seen several ways (`queries`: its features at each
+    /// travel-time stretch the stage tries, [`crate::stretch`]) over `reference`: the one whose
+    /// share score (mean channel peak) is highest decides, refused or not. Returns the decision
+    /// and the index of that query.
+    ///
+    /// # Errors
+    /// See [`Model::correlate`]; [`Error::Shape`] when `queries` is empty.
+    pub fn assess_best(
+        &mut self,
+        reference: &Features,
+        queries: &[Features],
+        resolution_m: f64,
+    ) -> Result<(LearnedMatch, Option<Refusal>, usize)> {
+        let mut best: Option<(CorrVector, usize)> = None;
+        for (i, query) in queries.iter().enumerate() {
+            let corr = self.correlate(reference, query, resolution_m)?;
+            if best.as_ref().is_none_or(|(b, _)| corr.share_score() > b.share_score()) {
+                best = Some((corr, i));
+            }
+        }
+        let Some((corr, i)) = best else {
+            return Err(Error::Shape("no query features to register".into()));
+        };
+        let (found, refusal) = self.decide(corr);
+        Ok((found, refusal, i))
+    }
+
+    /// The head's shift and the two checks on one correlation vector.
+    fn decide(&self, corr: CorrVector) -> (LearnedMatch, Option<Refusal>) {
         let share_score = corr.share_score();
         let shift_m = self.head.predict(&corr.values);
         let (agreement, agrees) = match self.head.agreement {
@@ -1366,7 +1398,7 @@ impl Model {
             variance_m2: self.head.sigma_m * self.head.sigma_m,
             corr: corr.values,
         };
-        Ok((found, refusal))
+        (found, refusal)
     }
 }
 

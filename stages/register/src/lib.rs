@@ -6,6 +6,8 @@
 //! - [`learned`]: the learned model (seed 000 §4.5-4.6, `tools/train/SPEC.md`): ONNX encoder,
 //!   spatial correlation of the features, regression head.
 //! - [`front_end`]: the encoder's weight-free front end, run before the ONNX graph.
+//! - [`stretch`]: a submap's travel times stretched, for the learned method's search over the
+//!   wave speed changing between passes.
 //! - [`candidates`]: loop-candidate selection from the current estimate (or the ground truth,
 //!   the oracle association used for evaluation).
 //! - `node` (feature `node`, default): the `register` stage.
@@ -16,6 +18,7 @@ pub mod front_end;
 pub mod learned;
 #[cfg(feature = "node")]
 pub mod node;
+pub mod stretch;
 
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]

@@ -30,7 +30,7 @@ use gprflow::stage::{
 use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
 use crate::learned::{Features, Head, Model};
-use crate::{Error, Result, positive};
+use crate::{Error, Result, positive, stretch};
 
 /// How a candidate pair is registered.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
@@ -118,6 +118,14 @@ pub struct RegisterParams {
     /// Which moments a grid method's registration relates (default anchors; the oracle always
     /// sends the ground-truth offset between the anchors).
     pub stamps: Stamps,
+    /// The learned method's travel-time stretch search: each query is also encoded with its
+    /// rows stretched by `1 +- k * stretch_step` for `k` in `1..=stretch_steps`, and for each
+    /// pair the stretch whose features share most with the reference (highest mean channel
+    /// peak) is the one the checks and the head judge. It follows the wave speed changing
+    /// between passes (drying soil). Default 1 (3 encodings per query); 0 turns it off.
+    pub stretch_steps: usize,
+    /// Relative stretch between two neighbouring factors of the search (default 0.015).
+    pub stretch_step: f64,
 }
 
 impl Default for RegisterParams {
@@ -137,6 +145,8 @@ impl Default for RegisterParams {
             query_spacing_m: 0.5,
             max_track_gap_s: 1.0,
             stamps: Stamps::Anchors,
+            stretch_steps: 1,
+            stretch_step: 0.015,
         }
     }
 }
@@ -144,6 +154,7 @@ impl Default for RegisterParams {
 impl RegisterParams {
     fn check(&self) -> Result<()> {
         self.candidates.check()?;
+        stretch::factors(self.stretch_step, self.stretch_steps)?;
         positive("reference_spacing_m", self.reference_spacing_m)?;
         positive("query_spacing_m", self.query_spacing_m)?;
         positive("max_track_gap_s", self.max_track_gap_s)?;
@@ -279,6 +290,8 @@ struct Counts {
     rejected: u64,
     sent: u64,
     never_placed: u64,
+    /// Learned registrations whose query was stretched.
+    stretched: u64,
 }
 
 /// The register stage.
@@ -286,6 +299,8 @@ struct Counts {
 pub struct RegisterStage {
     params: RegisterParams,
     model: Option<Model>,
+    /// The learned method's travel-time stretches, 1 among them.
+    stretches: Vec<f64>,
     /// The zeroth-order model's constant shift, m.
     zeroth_m: Option<f64>,
     out: Output<Registration>,
@@ -359,9 +374,14 @@ impl RegisterStage {
                 self.counts.queries += 1;
                 self.last_query_odom = Some(q.anchor.odom);
             }
+            let queries = if found.is_empty() {
+                Vec::new()
+            } else {
+                self.query_features(&q)?
+            };
             for (index, _) in found {
                 self.counts.pairs += 1;
-                match self.register_pair(index, &q)? {
+                match self.register_pair(index, &q, &queries)? {
                     Some(msg) => {
                         let msg = Registration {
                             header: Header::new(stamp_ns, "base_link"),
@@ -384,9 +404,37 @@ impl RegisterStage {
         Ok(())
     }
 
-    /// The registration of query `q` against reference `index`, or `None` when the method's
-    /// gate refuses it.
-    fn register_pair(&mut self, index: usize, q: &Entry) -> std::result::Result<Option<Registration>, StageError> {
+    /// The learned model's features of query `q` at every stretch of the search (the order of
+    /// `self.stretches`); empty for the other methods.
+    fn query_features(&mut self, q: &Entry) -> std::result::Result<Vec<Features>, StageError> {
+        let (Some(model), Some(unstretched)) = (self.model.as_mut(), q.features.as_ref()) else {
+            return Ok(Vec::new());
+        };
+        let mut out = Vec::with_capacity(self.stretches.len());
+        let mut pixels = Vec::new();
+        for &factor in &self.stretches {
+            if factor == 1.0 {
+                out.push(unstretched.clone());
+                continue;
+            }
+            stretch::stretch_rows(&q.view(), factor, &mut pixels).map_err(StageError::failed)?;
+            let view = SubmapView {
+                pixels: &pixels,
+                ..q.view()
+            };
+            out.push(model.encode(&view).map_err(StageError::failed)?);
+        }
+        Ok(out)
+    }
+
+    /// The registration of query `q` (`queries`: its learned features at each stretch) against
+    /// reference `index`, or `None` when the method's gate refuses it.
+    fn register_pair(
+        &mut self,
+        index: usize,
+        q: &Entry,
+        queries: &[Features],
+    ) -> std::result::Result<Option<Registration>, StageError> {
         let r = &self.references[index];
         let mut learned_sigma = None;
         let (shift_m, score) = match self.params.method {
@@ -406,12 +454,17 @@ impl RegisterStage {
                 }
             }
             Method::Learned => {
-                let (Some(model), Some(fr), Some(fq)) = (self.model.as_mut(), r.features.as_ref(), q.features.as_ref())
-                else {
+                let (Some(model), Some(fr)) = (self.model.as_mut(), r.features.as_ref()) else {
                     return Ok(None);
                 };
+                if queries.is_empty() {
+                    return Ok(None);
+                }
                 learned_sigma = Some(model.head.sigma_m);
-                let (m, refusal) = model.assess(fr, fq, q.resolution_m).map_err(StageError::failed)?;
+                let (m, refusal, at) = model
+                    .assess_best(fr, queries, q.resolution_m)
+                    .map_err(StageError::failed)?;
+                let stretch = self.stretches.get(at).copied().unwrap_or(1.0);
                 if let Some(why) = refusal {
                     tracing::debug!(
                         reference = r.id,
@@ -421,9 +474,13 @@ impl RegisterStage {
                         shift_m = m.shift_m,
                         share_score = m.share_score,
                         agreement = m.agreement,
+                        stretch,
                         "not registered: {why:?}"
                     );
                     return Ok(None);
+                }
+                if stretch != 1.0 {
+                    self.counts.stretched += 1;
                 }
                 (m.shift_m, m.share_score)
             }
@@ -612,9 +669,11 @@ impl Stage for RegisterStage {
                 m.head.sigma_m
             );
         }
+        let stretches = stretch::factors(params.stretch_step, params.stretch_steps).map_err(param_error)?;
         Ok(Self {
             params,
             model,
+            stretches,
             zeroth_m,
             out: ports.output("registration")?,
             estimate: Track::new(),
@@ -687,6 +746,7 @@ impl Stage for RegisterStage {
             invalid = c.invalid,
             not_salient = c.not_salient,
             never_placed = c.never_placed,
+            stretched = c.stretched,
             "register ({}): {} registrations from {} candidate pairs ({} refused by the method's gate)",
             self.params.method.name(),
             c.sent,
@@ -722,6 +782,30 @@ mod tests {
             ..RegisterParams::default()
         };
         assert!(matches!(bad.check(), Err(Error::Param { key: "sigma_m", .. })));
+        for (steps, step) in [(1, f64::NAN), (1, 0.0), (10, 0.03)] {
+            let bad = RegisterParams {
+                stretch_steps: steps,
+                stretch_step: step,
+                ..RegisterParams::default()
+            };
+            assert!(
+                matches!(
+                    bad.check(),
+                    Err(Error::Param {
+                        key: "stretch_step",
+                        ..
+                    })
+                ),
+                "{steps} x {step}"
+            );
+        }
+        // no search: the step is not used
+        let off = RegisterParams {
+            stretch_steps: 0,
+            stretch_step: f64::NAN,
+            ..RegisterParams::default()
+        };
+        assert!(off.check().is_ok());
         assert_eq!(RegisterParams::default().sigma(Some(0.03)), 0.1);
         let learned = RegisterParams {
             method: Method::Learned,

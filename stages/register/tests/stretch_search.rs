@@ -1,0 +1,182 @@
+//! The learned method's travel-time stretch search (`gprflow_register::stretch`,
+//! `Model::assess_best`) on the trained model and a pair of its fixtures: a query whose travel
+//! times were stretched, as a pass over wetter soil would be, is found again at the factor that
+//! undoes the stretch, and registered where the unstretched search refuses it.
+//!
+//! Needs ONNX Runtime's library, as tests/learned_parity.rs.
+
+use std::path::{Path, PathBuf};
+
+use gprflow_register::engineered::SubmapView;
+use gprflow_register::learned::{Features, Model, ONNXRUNTIME_ENV, ONNXRUNTIME_LIBRARY};
+use gprflow_register::stretch::{factors, stretch_rows};
+
+const FIXTURES: &str = "stages/register/tests/fixtures/learned";
+
+fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn ort_library() -> PathBuf {
+    let lib = match std::env::var_os(ONNXRUNTIME_ENV) {
+        Some(p) if !p.is_empty() => PathBuf::from(p),
+        _ => repo_root().join(".onnxruntime").join(ONNXRUNTIME_LIBRARY),
+    };
+    assert!(
+        lib.is_file(),
+        "ONNX Runtime library {} not found: run tools/scripts/ensure-onnxruntime.sh (or set {ONNXRUNTIME_ENV})",
+        lib.display()
+    );
+    lib
+}
+
+fn read_f32(path: &Path) -> Vec<f32> {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+fn view(pixels: &[f32]) -> SubmapView<'_> {
+    SubmapView {
+        pixels,
+        rows: 201,
+        cols: 200,
+        resolution_m: 0.015,
+    }
+}
+
+/// The query's features at each factor of the search.
+fn search(model: &mut Model, query: &[f32], at: &[f64]) -> Vec<Features> {
+    let mut stretched = Vec::new();
+    at.iter()
+        .map(|&f| {
+            stretch_rows(&view(query), f, &mut stretched).expect("stretches");
+            model.encode(&view(&stretched)).expect("encodes")
+        })
+        .collect()
+}
+
+#[test]
+fn a_stretched_query_is_found_again_at_the_factor_that_undoes_it() {
+    let root = repo_root();
+    let mut model = Model::load(
+        &root.join("stages/register/models/ground_encoding.onnx"),
+        &root.join("stages/register/models/ground_encoding.head.json"),
+        Some(&ort_library()),
+    )
+    .expect("the committed model");
+    let dir = root.join(FIXTURES);
+    // two passes of one by_hand run over the same ground (held-out scenario), registered as
+    // they are (manifest: target -0.934 m, mean peak 0.644, registered)
+    let reference = read_f32(&dir.join("different_legs.reference.f32"));
+    let query = read_f32(&dir.join("different_legs.query.f32"));
+    let target_m = -0.933_918_880_828_944;
+    let fr = model.encode(&view(&reference)).expect("encodes");
+
+    // the query as a pass over slower ground would see it: every arrival 1 / 0.95 later
+    let mut slower = Vec::new();
+    stretch_rows(&view(&query), 0.95, &mut slower).expect("stretches");
+
+    let unstretched = search(&mut model, &slower, &[1.0]);
+    let (plain, refusal, _) = model.assess_best(&fr, &unstretched, 0.015).expect("assesses");
+    assert!(
+        refusal.is_some(),
+        "unstretched the slower query should be refused: {:.3} m, share {:.3}, agreement {:.2}",
+        plain.shift_m,
+        plain.share_score,
+        plain.agreement
+    );
+
+    let at = factors(0.02, 2).expect("factors");
+    let queries = search(&mut model, &slower, &at);
+    let (found, refusal, best) = model.assess_best(&fr, &queries, 0.015).expect("assesses");
+    // 0.95 x 1.04 = 0.988: the factor that undoes the stretch (the two legs, minutes apart
+    // on drying soil, match best at about 0.985 as they are)
+    assert_eq!(at[best], 1.04, "chose {} (share {:.3})", at[best], found.share_score);
+    assert_eq!(
+        refusal, None,
+        "share {:.3}, agreement {:.2}",
+        found.share_score, found.agreement
+    );
+    assert!(
+        found.share_score > plain.share_score + 0.05,
+        "{} vs {}",
+        found.share_score,
+        plain.share_score
+    );
+    assert!(
+        (found.shift_m - target_m).abs() < 0.05,
+        "{:.3} m against the truth's {target_m:.3} m",
+        found.shift_m
+    );
+    // each candidate decides on its own correlation: the chosen one is the highest share
+    for (i, q) in queries.iter().enumerate() {
+        let (m, _, _) = model
+            .assess_best(&fr, std::slice::from_ref(q), 0.015)
+            .expect("assesses");
+        assert!(
+            m.share_score <= found.share_score,
+            "factor {}: {}",
+            at[i],
+            m.share_score
+        );
+    }
+}
+
+#[test]
+fn two_runs_over_soil_of_other_moisture_register_only_with_the_search() {
+    let root = repo_root();
+    let mut model = Model::load(
+        &root.join("stages/register/models/ground_encoding.onnx"),
+        &root.join("stages/register/models/ground_encoding.head.json"),
+        Some(&ort_library()),
+    )
+    .expect("the committed model");
+    let dir = root.join(FIXTURES);
+    // two runs over the same ground of the held-out scenario, the soil's moisture different
+    // (manifest: target -1.359 m, mean peak 0.376, refused, the head's shift -0.24 m)
+    let reference = read_f32(&dir.join("different_runs.reference.f32"));
+    let query = read_f32(&dir.join("different_runs.query.f32"));
+    let target_m = -1.358_790_073_053_071_5;
+    let fr = model.encode(&view(&reference)).expect("encodes");
+    let unstretched = search(&mut model, &query, &[1.0]);
+    let (plain, refusal, _) = model.assess_best(&fr, &unstretched, 0.015).expect("assesses");
+    assert!(
+        refusal.is_some(),
+        "{:.3} m, share {:.3}",
+        plain.shift_m,
+        plain.share_score
+    );
+    // a search wide enough for a change of moisture between runs (the stage's default, 1 +-
+    // 0.015, is chosen for passes minutes apart)
+    let at = factors(0.03, 2).expect("factors");
+    let queries = search(&mut model, &query, &at);
+    let (found, refusal, best) = model.assess_best(&fr, &queries, 0.015).expect("assesses");
+    assert_eq!(at[best], 1.06, "chose {} (share {:.3})", at[best], found.share_score);
+    assert_eq!(
+        refusal, None,
+        "share {:.3}, agreement {:.2}",
+        found.share_score, found.agreement
+    );
+    assert!(
+        (found.shift_m - target_m).abs() < 0.05,
+        "{:.3} m against the truth's {target_m:.3} m",
+        found.shift_m
+    );
+}
+
+#[test]
+fn no_query_is_an_error_not_a_panic() {
+    let root = repo_root();
+    let mut model = Model::load(
+        &root.join("stages/register/models/ground_encoding.onnx"),
+        &root.join("stages/register/models/ground_encoding.head.json"),
+        Some(&ort_library()),
+    )
+    .expect("the committed model");
+    let reference = read_f32(&root.join(FIXTURES).join("different_legs.reference.f32"));
+    let fr = model.encode(&view(&reference)).expect("encodes");
+    assert!(model.assess_best(&fr, &[], 0.015).is_err());
+}
