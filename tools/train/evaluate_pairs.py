@@ -63,6 +63,24 @@ def evaluate(args, head, scenario, run):
     k = head["channels"]
     v = np.zeros((len(pairs), 2 * k))
     v[sel] = train.correlation_vectors([feats], pairs.select(sel), resolution_m, head["column_stride"])
+    # the register stage's stretch search: the query's rows stretched by each factor, the one
+    # with the highest mean channel peak decides
+    sub = pairs.select(sel)
+    queries = np.unique(sub.query_index)
+    for factor in gprdata.stretch_factors(args.stretch_step, args.stretch_steps):
+        if factor == 1.0:
+            continue
+        stretched = feats.copy()
+        for i in queries:
+            stretched[i] = gprdata.encode(sess, gprdata.standardise(
+                gprdata.stretch_rows(without_eigenimages(r.pixels[i:i + 1], args.remove_eigenimages)[0], factor)))
+        on_stretched = gprdata.Pairs(np.zeros(len(sub), dtype=np.int64), sub.ref_index, np.ones(len(sub), dtype=np.int64),
+                                     sub.query_index, sub.target_m, sub.kind, sub.cross_pass)
+        w = train.correlation_vectors([feats, stretched], on_stretched, resolution_m, head["column_stride"])
+        better = w[:, k:].mean(-1) > v[sel][:, k:].mean(-1)
+        vs = v[sel]
+        vs[better] = w[better]
+        v[sel] = vs
     learned = train.apply_head(head, v)
     shares, _, registered = train.registration_decision(head, v, learned)
     target = pairs.target_m
@@ -100,6 +118,10 @@ def main():
     p.add_argument("--remove-eigenimages", type=int, default=0, metavar="N",
                    help="take each submap's N largest singular components out first (both models; a test of "
                         "what the banding costs, not part of the pipeline)")
+    p.add_argument("--stretch-steps", type=int, default=0, metavar="N",
+                   help="the learned model with the register stage's travel-time stretch search: the query also "
+                        "at 1 +- k * STEP, k = 1..N (graphs/localize.yaml: 1; default 0, off)")
+    p.add_argument("--stretch-step", type=float, default=0.015, metavar="STEP")
     p.add_argument("--json", action="store_true", help="one JSON object per run instead of a table")
     args = p.parse_args()
     head = json.load(open(args.head))

@@ -338,6 +338,25 @@ def apply_front_end(front, image):
     return (y / (np.sqrt((y * y).mean()) + 1e-6)).astype(np.float32)
 
 
+def stretch_rows(image, factor):
+    """Row ``r`` of the result is ``image`` at row ``r * factor`` (linear between rows, per column;
+    0 past the last row): the register stage's travel-time stretch (stages/register/src/stretch.rs)."""
+    x = np.asarray(image, dtype=np.float64)
+    rows = x.shape[0]
+    src = np.arange(rows) * factor
+    r0 = np.minimum(np.floor(src).astype(np.int64), rows - 1)
+    r1 = np.minimum(r0 + 1, rows - 1)
+    a = (src - r0)[:, None]
+    out = x[r0] + a * (x[r1] - x[r0])
+    out[src > rows - 1] = 0.0
+    return out.astype(np.float32)
+
+
+def stretch_factors(step, steps):
+    """``1 + k * step`` for ``k`` in ``-steps..=steps`` (the register stage's search)."""
+    return [1.0 + k * step for k in range(-steps, steps + 1)]
+
+
 def encode(sess, standardised, front=None):
     """Features ``K x h x w`` of one standardised submap: the front end, then the graph."""
     front = front_end_of(sess) if front is None else front

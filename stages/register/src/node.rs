@@ -122,7 +122,8 @@ pub struct RegisterParams {
     /// rows stretched by `1 +- k * stretch_step` for `k` in `1..=stretch_steps`, and for each
     /// pair the stretch whose features share most with the reference (highest mean channel
     /// peak) is the one the checks and the head judge. It follows the wave speed changing
-    /// between passes (drying soil). Default 1 (3 encodings per query); 0 turns it off.
+    /// between passes (drying soil). Default 0 (off): with 1 it registers more pairs but lets
+    /// through rare wrong matches the checks were not chosen for (README, "Localisation").
     pub stretch_steps: usize,
     /// Relative stretch between two neighbouring factors of the search (default 0.015).
     pub stretch_step: f64,
@@ -145,7 +146,7 @@ impl Default for RegisterParams {
             query_spacing_m: 0.5,
             max_track_gap_s: 1.0,
             stamps: Stamps::Anchors,
-            stretch_steps: 1,
+            stretch_steps: 0,
             stretch_step: 0.015,
         }
     }
