@@ -587,6 +587,10 @@ def parse_args():
     p.add_argument("--data-only", action="store_true",
                    help="simulate, build, decode and cache the submaps, then stop (no torch needed)")
     p.add_argument("--no-export", action="store_true", help="train and validate, write nothing")
+    p.add_argument("--stretch-steps", type=int, default=0, metavar="N",
+                   help="with --calibrate: choose the checks under the register stage's travel-time stretch search "
+                        "(the query also at 1 +- k * --stretch-step, k = 1..N)")
+    p.add_argument("--stretch-step", type=float, default=0.015)
     p.add_argument("--calibrate", action="store_true",
                    help="no training: choose the committed heads' agreement check and sigma_m again from the "
                         "committed encoder on the same pairs, and rewrite the fixtures' decisions")
@@ -655,6 +659,8 @@ def calibrate(args, scenarios):
     t = time.time()
     v = correlation_vectors(features, pairs, resolution_m, heads["linear"]["column_stride"])
     log(f"correlation vectors {v.shape} ({time.time() - t:.0f} s)")
+    if args.stretch_steps:
+        v = stretch_search(sess, front, images, features, pairs, v, resolution_m, heads["linear"], args)
     report = calibrate_heads(heads, v, pairs, is_val)
     crc = encoder_crc32(os.path.join(args.models_dir, ONNX_NAME))
     for kind, head in heads.items():
@@ -671,6 +677,31 @@ def calibrate(args, scenarios):
         case.update(fixture_decision(heads["linear"], np.asarray(case["correlation"]), case["linear_m"]))
     write_json(manifest_path, manifest)
     log(f"wrote {', '.join(HEAD_NAMES.values())} and {manifest_path}")
+
+
+def stretch_search(sess, front, images, features, pairs, v, resolution_m, head, args):
+    """The register stage's travel-time stretch search (``stretch_steps``, README Localisation)
+    on every pair: the query's rows stretched by each factor, and the correlation vector with
+    the highest mean channel peak kept (the query stretched after standardising; the stage stretches
+    it before, which differs only in the last rows, past the end of the image)."""
+    k = head["channels"]
+    for factor in gprdata.stretch_factors(args.stretch_step, args.stretch_steps):
+        if factor == 1.0:
+            continue
+        t = time.time()
+        stretched = [f.copy() for f in features]
+        for r, im in enumerate(images):
+            for i in np.unique(pairs.query_index[pairs.query_run == r]):
+                stretched[r][i] = gprdata.encode(sess, gprdata.standardise(gprdata.stretch_rows(im[i], factor)), front)
+        # the reference side unstretched, the query side stretched
+        n_runs = len(features)
+        on_stretched = gprdata.Pairs(pairs.ref_run, pairs.ref_index, pairs.query_run + n_runs, pairs.query_index,
+                                     pairs.target_m, pairs.kind, pairs.cross_pass)
+        w = correlation_vectors(features + stretched, on_stretched, resolution_m, head["column_stride"])
+        better = w[:, k:].mean(-1) > v[:, k:].mean(-1)
+        v = np.where(better[:, None], w, v)
+        log(f"stretch {factor:g}: better for {100 * better.mean():.1f} % of the pairs ({time.time() - t:.0f} s)")
+    return v
 
 
 def fixture_decision(head, v, linear_m):
