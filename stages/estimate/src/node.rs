@@ -12,7 +12,9 @@ use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::imu::ImuParams;
 use crate::lie::Pose3;
-use crate::online::{FirstStatePrior, OnlineEstimator, OnlineParams, RegistrationMeasurement, StateOutput};
+use crate::online::{
+    FirstStatePrior, OnlineEstimator, OnlineParams, RegistrationMeasurement, RegistrationOutcome, StateOutput,
+};
 use crate::smoother::SmootherParams;
 
 /// Parameters of the `estimate` stage.
@@ -48,6 +50,13 @@ pub struct EstimateParams {
     /// m: right for a rig that drives the same line again; 0 reads only the along-track
     /// distance (default 0).
     pub registration_across_sigma_m: f64,
+    /// Largest difference between a new registration's along-track distance and the current
+    /// estimate's, m, right after the estimate took a registration: one further from the
+    /// estimate is dropped as a wrong match (default 0: off).
+    pub registration_gate_m: f64,
+    /// Widening of `registration_gate_m` per second that the query lies after the newest
+    /// registered query the estimate has solved with, m/s (default 0).
+    pub registration_gate_growth_mps: f64,
     /// Minimum baseline that initialises a line, m (default 1.0).
     pub line_min_baseline_m: f64,
     /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
@@ -77,6 +86,8 @@ impl Default for EstimateParams {
             registration_sigma_m: o.registration_sigma_m,
             registration_full_pose: o.registration_full_pose,
             registration_across_sigma_m: o.registration_across_sigma_m,
+            registration_gate_m: o.registration_gate_m,
+            registration_gate_growth_mps: o.registration_gate_growth_mps,
             line_min_baseline_m: o.line_min_baseline_m,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             snapshot_every_states: 10,
@@ -106,6 +117,8 @@ impl EstimateParams {
             registration_sigma_m: self.registration_sigma_m,
             registration_full_pose: self.registration_full_pose,
             registration_across_sigma_m: self.registration_across_sigma_m,
+            registration_gate_m: self.registration_gate_m,
+            registration_gate_growth_mps: self.registration_gate_growth_mps,
             line_min_baseline_m: self.line_min_baseline_m,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
             first_state: FirstStatePrior {
@@ -138,6 +151,8 @@ pub struct EstimateStage {
     origin_seen: bool,
     /// Messages dropped as unusable (non-finite values).
     drops: Drops,
+    /// Registrations dropped by `registration_gate_m`.
+    gated_registrations: u64,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -317,6 +332,8 @@ impl Stage for EstimateStage {
         let off_or_positive = [
             ("nonholonomic_sigma_mps", params.nonholonomic_sigma_mps),
             ("registration_across_sigma_m", params.registration_across_sigma_m),
+            ("registration_gate_m", params.registration_gate_m),
+            ("registration_gate_growth_mps", params.registration_gate_growth_mps),
         ];
         for (key, value) in off_or_positive {
             if !(value.is_finite() && value >= 0.0) {
@@ -339,6 +356,7 @@ impl Stage for EstimateStage {
             last_stamp_ns: 0,
             origin_seen: false,
             drops: Drops::new(),
+            gated_registrations: 0,
         })
     }
 
@@ -383,9 +401,35 @@ impl Stage for EstimateStage {
                     along_track_m: m.along_track_m,
                     covariance,
                 };
-                let added = self.est.registration(&r);
-                if self.accept(&input, added)? == Some(false) {
-                    tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
+                let outcome = self.est.registration(&r);
+                match self.accept(&input, outcome)? {
+                    Some(RegistrationOutcome::Added { residual_m, gate_m }) => {
+                        tracing::debug!(
+                            seq = input.seq(),
+                            reference_stamp_ns = r.reference_stamp_ns,
+                            query_stamp_ns = r.query_stamp_ns,
+                            along_track_m = r.along_track_m,
+                            residual_m,
+                            gate_m,
+                            "registration added"
+                        );
+                    }
+                    Some(RegistrationOutcome::NoStates) => {
+                        tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
+                    }
+                    Some(RegistrationOutcome::Gated { residual_m, gate_m }) => {
+                        self.gated_registrations += 1;
+                        tracing::debug!(
+                            seq = input.seq(),
+                            reference_stamp_ns = r.reference_stamp_ns,
+                            query_stamp_ns = r.query_stamp_ns,
+                            along_track_m = r.along_track_m,
+                            residual_m,
+                            gate_m,
+                            "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
+                        );
+                    }
+                    None => {}
                 }
             }
             "line" => {
@@ -417,6 +461,12 @@ impl Stage for EstimateStage {
             tracing::info!(
                 imu_samples = self.est.dropped_before_origin(),
                 "estimate: IMU samples before the first initial_pose, not used"
+            );
+        }
+        if self.gated_registrations > 0 {
+            tracing::info!(
+                gated = self.gated_registrations,
+                "estimate: registrations further than the registration gate from the estimate, dropped"
             );
         }
         if self.est.late_updates() > 0 {

@@ -36,6 +36,15 @@ pub struct OnlineParams {
     pub registration_full_pose: bool,
     /// Huber threshold on registrations (whitened); 0 for none.
     pub registration_huber_k: f64,
+    /// Largest difference between a new registration's along-track distance and the current
+    /// estimate's, m, right after the estimate took a registration: one further from the
+    /// estimate is dropped as a wrong match (0: off). The gate widens by
+    /// `registration_gate_growth_mps` for every second the query's stamp lies after the newest
+    /// query the estimate has solved with (or after the first state), as the dead reckoning
+    /// drifts.
+    pub registration_gate_m: f64,
+    /// Widening of `registration_gate_m` per second without a registration, m/s.
+    pub registration_gate_growth_mps: f64,
     /// Sigma of the offset across the reference's track that a registration is taken to
     /// imply, m (the relative pose's y; 0 for a 1-D registration): the two submaps share
     /// features, so the passes were close. Right for a rig that drives the same line again,
@@ -89,6 +98,8 @@ impl Default for OnlineParams {
             registration_sigma_m: 0.05,
             registration_full_pose: false,
             registration_huber_k: 1.345,
+            registration_gate_m: 0.0,
+            registration_gate_growth_mps: 0.0,
             registration_across_sigma_m: 0.0,
             line_min_baseline_m: 1.0,
             line_prior_sigma: 1.0,
@@ -96,6 +107,30 @@ impl Default for OnlineParams {
             first_state: FirstStatePrior::default(),
         }
     }
+}
+
+/// What became of a registration ([`OnlineEstimator::registration`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RegistrationOutcome {
+    /// Added as factors; `residual_m` is the current estimate's along-track distance
+    /// between the two states minus the measured one, before the factor was added, and
+    /// `gate_m` the gate it passed (0: off).
+    Added {
+        /// m.
+        residual_m: f64,
+        /// m.
+        gate_m: f64,
+    },
+    /// Its stamps match no two distinct states.
+    NoStates,
+    /// Further than the gate `gate_m` from the current estimate (`residual_m` as for
+    /// `Added`): dropped.
+    Gated {
+        /// m.
+        residual_m: f64,
+        /// m.
+        gate_m: f64,
+    },
 }
 
 /// A GPR registration between the states nearest two stamps.
@@ -158,6 +193,10 @@ pub struct OnlineEstimator {
     /// Drop IMU samples until [`OnlineEstimator::set_origin`] is called.
     waiting_for_origin: bool,
     dropped_before_origin: u64,
+    /// The newest query stamp of the registrations added so far, and of those the estimate
+    /// has solved with (the registration gate widens from it).
+    registered_query_ns: Option<i64>,
+    solved_query_ns: Option<i64>,
 }
 
 impl OnlineEstimator {
@@ -180,6 +219,8 @@ impl OnlineEstimator {
             origin: Pose3::identity(),
             waiting_for_origin: false,
             dropped_before_origin: 0,
+            registered_query_ns: None,
+            solved_query_ns: None,
         }
     }
 
@@ -279,11 +320,13 @@ impl OnlineEstimator {
         ((self.stamps_ns[best] - stamp_ns).abs() <= self.period_ns()).then_some(best)
     }
 
-    /// Adds a GPR registration; `false` when its stamps match no states.
+    /// Adds a GPR registration, unless its stamps match no states or, with a
+    /// `registration_gate_m`, its along-track distance is further than that from the current
+    /// estimate's.
     ///
     /// # Errors
-    /// A bad covariance.
-    pub fn registration(&mut self, r: &RegistrationMeasurement) -> Result<bool> {
+    /// A measurement that is not finite; a bad covariance.
+    pub fn registration(&mut self, r: &RegistrationMeasurement) -> Result<RegistrationOutcome> {
         let p = &r.relative_pose;
         if !(r.along_track_m.is_finite() && p.rot.iter().chain(p.trans_m.iter()).all(|v| v.is_finite())) {
             return Err(Error::BadMeasurement(format!(
@@ -295,10 +338,10 @@ impl OnlineEstimator {
             self.nearest_state(r.reference_stamp_ns),
             self.nearest_state(r.query_stamp_ns),
         ) else {
-            return Ok(false);
+            return Ok(RegistrationOutcome::NoStates);
         };
         if i == j {
-            return Ok(false);
+            return Ok(RegistrationOutcome::NoStates);
         }
         // The measurement relates the two submap stamps; the factor relates the nearest
         // states, up to half a state period away. Move each end along track by the state's
@@ -312,6 +355,12 @@ impl OnlineEstimator {
         };
         let along_track_m = r.along_track_m + forward_m(j, r.query_stamp_ns)? - forward_m(i, r.reference_stamp_ns)?;
         let (pi, pj) = (self.states[i].pose, self.states[j].pose);
+        let residual_m = self.values.pose(pi)?.between(self.values.pose(pj)?).trans_m.x - along_track_m;
+        let gate_m = self.registration_gate_m(r.query_stamp_ns);
+        if gate_m > 0.0 && residual_m.abs() > gate_m {
+            return Ok(RegistrationOutcome::Gated { residual_m, gate_m });
+        }
+        self.registered_query_ns = self.registered_query_ns.max(Some(r.query_stamp_ns));
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
             k: self.params.registration_huber_k,
         });
@@ -341,7 +390,22 @@ impl OnlineEstimator {
                     .add(TrackOffset::across(pi, pj, r.relative_pose.trans_m.y, noise)?);
             }
         }
-        Ok(true)
+        Ok(RegistrationOutcome::Added { residual_m, gate_m })
+    }
+
+    /// The registration gate for a query at `query_stamp_ns` (0: off): `registration_gate_m`
+    /// widened by `registration_gate_growth_mps` per second after the newest query the
+    /// estimate has solved with, or after the first state.
+    fn registration_gate_m(&self, query_stamp_ns: i64) -> f64 {
+        let base = self.params.registration_gate_m;
+        if base <= 0.0 {
+            return 0.0;
+        }
+        let since_ns = self
+            .solved_query_ns
+            .or(self.stamps_ns.first().copied())
+            .unwrap_or(query_stamp_ns);
+        base + self.params.registration_gate_growth_mps * ((query_stamp_ns - since_ns).max(0) as f64 * 1e-9)
     }
 
     /// Adds a line observation from the state nearest `stamp_ns`; `false` when none matches.
@@ -425,6 +489,8 @@ impl OnlineEstimator {
 
     fn add_state(&mut self, stamp_ns: i64) -> Result<StateOutput> {
         let start = Instant::now();
+        // the registrations added so far are solved with in this update
+        self.solved_query_ns = self.registered_query_ns;
         let i = self.states.len();
         let keys = if let Some(prev) = self.states.last().copied() {
             let bias = *self.values.bias(prev.bias)?;
@@ -592,10 +658,23 @@ mod tests {
         seconds: i64,
         wheel_scale: f64,
         registration_across_sigma_m: f64,
-        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+        extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
     ) -> OnlineEstimator {
         let params = OnlineParams {
             registration_across_sigma_m,
+            ..OnlineParams::default()
+        };
+        drive_circle_params(seconds, wheel_scale, params, extra)
+    }
+
+    /// [`drive_circle`] with `params`, in line re-solves and a weak velocity prior.
+    fn drive_circle_params(
+        seconds: i64,
+        wheel_scale: f64,
+        params: OnlineParams,
+        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+    ) -> OnlineEstimator {
+        let params = OnlineParams {
             smoother: SmootherParams {
                 background: false,
                 ..SmootherParams::default()
@@ -604,7 +683,7 @@ mod tests {
                 velocity_sigma_mps: 10.0,
                 ..FirstStatePrior::default()
             },
-            ..OnlineParams::default()
+            ..params
         };
         let mut est = OnlineEstimator::new(params);
         // Body x along the velocity, centripetal acceleration along body y; at rest the
@@ -651,7 +730,8 @@ mod tests {
                     along_track_m: rel.trans_m.x,
                     covariance: None,
                 };
-                assert!(est.registration(&r).expect("registration"));
+                let added = est.registration(&r).expect("registration");
+                assert!(matches!(added, RegistrationOutcome::Added { .. }), "{added:?}");
             }
         }));
         assert!(without > 0.3, "a 10 % wheel error should show: {without} m");
@@ -674,9 +754,75 @@ mod tests {
                     along_track_m,
                     covariance: None,
                 };
-                assert!(est.registration(&r).expect("registration"));
+                let added = est.registration(&r).expect("registration");
+                assert!(matches!(added, RegistrationOutcome::Added { .. }), "{added:?}");
             }
         }
+    }
+
+    #[test]
+    fn a_registration_far_from_the_estimate_is_gated() {
+        // Every 10 states the true along-track distance to the state 1 s before, on a wheel
+        // 10 % long; at 5 s one 1.5 m wrong (a match on a repeated structure), or none.
+        let run = |registration_gate_m: f64, wrong: Option<f64>| {
+            let mut outcomes = Vec::new();
+            let params = OnlineParams {
+                registration_gate_m,
+                registration_gate_growth_mps: 0.1,
+                ..OnlineParams::default()
+            };
+            let est = drive_circle_params(10, 1.1, params, |est, s| {
+                if s.index >= 10 && s.index % 10 == 0 {
+                    let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - 1_000_000_000);
+                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+                    let wrong_m = match (s.index, wrong) {
+                        (50, Some(m)) => m,
+                        (50, None) => return,
+                        _ => 0.0,
+                    };
+                    let r = RegistrationMeasurement {
+                        reference_stamp_ns: t_i,
+                        query_stamp_ns: t_j,
+                        relative_pose: rel,
+                        along_track_m: rel.trans_m.x + wrong_m,
+                        covariance: None,
+                    };
+                    outcomes.push((wrong_m, est.registration(&r).expect("registration")));
+                }
+            });
+            (end_error_m(&est), outcomes)
+        };
+        let (ungated, outcomes) = run(0.0, Some(1.5));
+        assert!(
+            outcomes
+                .iter()
+                .all(|(_, o)| matches!(o, RegistrationOutcome::Added { .. }))
+        );
+        let (gated, outcomes) = run(0.5, Some(1.5));
+        for (wrong_m, outcome) in &outcomes {
+            match outcome {
+                // the estimate is within a few cm where the registrations keep it: the wrong
+                // one is 1.5 m from it, the right ones stay well inside the gate
+                RegistrationOutcome::Gated { residual_m, gate_m } if *wrong_m > 0.0 => {
+                    assert!((residual_m + 1.5).abs() < 0.1, "{residual_m}");
+                    // a second after the last registration
+                    assert!((gate_m - 0.6).abs() < 1e-9, "{gate_m}");
+                }
+                RegistrationOutcome::Added { residual_m, gate_m } if *wrong_m == 0.0 => {
+                    assert!(residual_m.abs() < 0.2, "{residual_m}");
+                    assert!(*gate_m >= 0.5, "{gate_m}");
+                }
+                other => panic!("{wrong_m} m wrong: {other:?}"),
+            }
+        }
+        // gated, the wrong one changes nothing; taken, it pulls the estimate off (the Huber
+        // kernel bounds its pull, not its harm)
+        let (without, _) = run(0.5, None);
+        assert_eq!(gated, without);
+        assert!(
+            ungated > without + 0.03,
+            "with the wrong one {ungated} m, without {without} m"
+        );
     }
 
     #[test]

@@ -483,6 +483,18 @@ impl RegisterStage {
                 if stretch != 1.0 {
                     self.counts.stretched += 1;
                 }
+                tracing::debug!(
+                    reference = r.id,
+                    query = q.id,
+                    reference_stamp_ns = r.anchor.stamp_ns,
+                    query_stamp_ns = q.anchor.stamp_ns,
+                    shift_m = m.shift_m,
+                    share_score = m.share_score,
+                    agreement = m.agreement,
+                    stretch,
+                    corr = ?m.corr,
+                    "registered"
+                );
                 (m.shift_m, m.share_score)
             }
             Method::Zeroth => match self.zeroth_m {
