@@ -129,6 +129,51 @@ impl EstimateParams {
             ..OnlineParams::default()
         }
     }
+
+    /// # Errors
+    /// A parameter out of its range, named.
+    fn check(&self) -> Result<(), StageError> {
+        if !(self.state_rate_hz.is_finite() && self.state_rate_hz > 0.0) {
+            return Err(param_error(
+                "state_rate_hz",
+                format!("must be > 0, got {}", self.state_rate_hz),
+            ));
+        }
+        if self.lag_states == 0 {
+            return Err(param_error("lag_states", "must be at least 1".into()));
+        }
+        let positive = [
+            ("acc_noise_density", self.acc_noise_density),
+            ("gyro_noise_density", self.gyro_noise_density),
+            ("acc_bias_random_walk", self.acc_bias_random_walk),
+            ("gyro_bias_random_walk", self.gyro_bias_random_walk),
+            ("acc_bias_prior_sigma_mps2", self.acc_bias_prior_sigma_mps2),
+            ("gyro_bias_prior_sigma_radps", self.gyro_bias_prior_sigma_radps),
+            ("gravity_mps2", self.gravity_mps2),
+            ("wheel_sigma_m", self.wheel_sigma_m),
+            ("registration_sigma_m", self.registration_sigma_m),
+        ];
+        for (key, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(param_error(key, format!("must be finite and > 0, got {value}")));
+            }
+        }
+        let off_or_positive = [
+            ("nonholonomic_sigma_mps", self.nonholonomic_sigma_mps),
+            ("registration_across_sigma_m", self.registration_across_sigma_m),
+            ("registration_gate_m", self.registration_gate_m),
+            ("registration_gate_growth_mps", self.registration_gate_growth_mps),
+        ];
+        for (key, value) in off_or_positive {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(param_error(
+                    key,
+                    format!("must be finite and >= 0 (0: off), got {value}"),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 fn param_error(key: &str, message: String) -> StageError {
@@ -304,45 +349,7 @@ impl Stage for EstimateStage {
     }
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        if !(params.state_rate_hz.is_finite() && params.state_rate_hz > 0.0) {
-            return Err(param_error(
-                "state_rate_hz",
-                format!("must be > 0, got {}", params.state_rate_hz),
-            ));
-        }
-        if params.lag_states == 0 {
-            return Err(param_error("lag_states", "must be at least 1".into()));
-        }
-        let positive = [
-            ("acc_noise_density", params.acc_noise_density),
-            ("gyro_noise_density", params.gyro_noise_density),
-            ("acc_bias_random_walk", params.acc_bias_random_walk),
-            ("gyro_bias_random_walk", params.gyro_bias_random_walk),
-            ("acc_bias_prior_sigma_mps2", params.acc_bias_prior_sigma_mps2),
-            ("gyro_bias_prior_sigma_radps", params.gyro_bias_prior_sigma_radps),
-            ("gravity_mps2", params.gravity_mps2),
-            ("wheel_sigma_m", params.wheel_sigma_m),
-            ("registration_sigma_m", params.registration_sigma_m),
-        ];
-        for (key, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(param_error(key, format!("must be finite and > 0, got {value}")));
-            }
-        }
-        let off_or_positive = [
-            ("nonholonomic_sigma_mps", params.nonholonomic_sigma_mps),
-            ("registration_across_sigma_m", params.registration_across_sigma_m),
-            ("registration_gate_m", params.registration_gate_m),
-            ("registration_gate_growth_mps", params.registration_gate_growth_mps),
-        ];
-        for (key, value) in off_or_positive {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(param_error(
-                    key,
-                    format!("must be finite and >= 0 (0: off), got {value}"),
-                ));
-            }
-        }
+        params.check()?;
         let mut est = OnlineEstimator::new(params.online());
         if ports.input("initial_pose").is_some() {
             est.wait_for_origin();
@@ -497,6 +504,45 @@ mod tests {
         let p = Pose3::exp(&Vector6::new(0.3, -0.2, 2.5, 1.0, -4.0, 0.5));
         let back = pose_from_msg(&pose_msg(&p));
         assert!(p.between(&back).log().norm() < 1e-12);
+    }
+
+    #[test]
+    fn params_out_of_range_are_named() {
+        assert!(EstimateParams::default().check().is_ok());
+        let gated = EstimateParams {
+            registration_gate_m: 1.0,
+            registration_gate_growth_mps: 0.02,
+            ..EstimateParams::default()
+        };
+        assert!(gated.check().is_ok());
+        for (params, key) in [
+            (
+                EstimateParams {
+                    registration_gate_m: -1.0,
+                    ..EstimateParams::default()
+                },
+                "registration_gate_m",
+            ),
+            (
+                EstimateParams {
+                    registration_gate_growth_mps: f64::NAN,
+                    ..EstimateParams::default()
+                },
+                "registration_gate_growth_mps",
+            ),
+            (
+                EstimateParams {
+                    wheel_sigma_m: 0.0,
+                    ..EstimateParams::default()
+                },
+                "wheel_sigma_m",
+            ),
+        ] {
+            match params.check() {
+                Err(StageError::Params(e)) => assert_eq!(e.path, vec![key.to_owned()], "{}", e.message),
+                other => panic!("{key}: {other:?}"),
+            }
+        }
     }
 
     #[test]
