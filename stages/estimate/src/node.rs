@@ -410,22 +410,23 @@ impl Stage for EstimateStage {
                 };
                 let outcome = self.est.registration(&r);
                 match self.accept(&input, outcome)? {
-                    Some(RegistrationOutcome::Added { residual_m, gate_m }) => {
-                        tracing::debug!(
-                            seq = input.seq(),
-                            reference_stamp_ns = r.reference_stamp_ns,
-                            query_stamp_ns = r.query_stamp_ns,
-                            along_track_m = r.along_track_m,
-                            residual_m,
-                            gate_m,
-                            "registration added"
-                        );
-                    }
                     Some(RegistrationOutcome::NoStates) => {
                         tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
                     }
-                    Some(RegistrationOutcome::Gated { residual_m, gate_m }) => {
-                        self.gated_registrations += 1;
+                    Some(
+                        o @ (RegistrationOutcome::Added { residual_m, gate_m }
+                        | RegistrationOutcome::Gated { residual_m, gate_m }),
+                    ) => {
+                        let gated = matches!(o, RegistrationOutcome::Gated { .. });
+                        self.gated_registrations += u64::from(gated);
+                        // tools/scripts/residuals.py reads these lines
+                        let verdict = if gated {
+                            format!(
+                                "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
+                            )
+                        } else {
+                            "registration added".to_owned()
+                        };
                         tracing::debug!(
                             seq = input.seq(),
                             reference_stamp_ns = r.reference_stamp_ns,
@@ -433,7 +434,7 @@ impl Stage for EstimateStage {
                             along_track_m = r.along_track_m,
                             residual_m,
                             gate_m,
-                            "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
+                            "{verdict}"
                         );
                     }
                     None => {}

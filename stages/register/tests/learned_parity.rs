@@ -5,13 +5,14 @@
 //! Needs ONNX Runtime's library: `GPRFLOW_ONNXRUNTIME`, else `.onnxruntime/` at the repository
 //! root, where `tools/scripts/ensure-onnxruntime.sh` puts it. Without it these tests fail.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
+use common::{ort_library, read_f32, repo_root};
 use gprflow_register::Error;
 use gprflow_register::engineered::SubmapView;
-use gprflow_register::learned::{
-    CorrelationParams, Correlator, Encoder, Features, Head, Model, ONNXRUNTIME_ENV, ONNXRUNTIME_LIBRARY, correlate,
-};
+use gprflow_register::learned::{CorrelationParams, Correlator, Encoder, Features, Head, Model, correlate};
 use serde_json::Value;
 
 /// The end-to-end head output (our features, our correlation vector, the head) may differ from
@@ -23,33 +24,6 @@ const TINY: &str = "stages/register/tests/fixtures/tiny/manifest.json";
 
 /// The trained model's parity fixtures (tools/train/train.py writes them).
 const LEARNED: &str = "stages/register/tests/fixtures/learned/manifest.json";
-
-fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// The ONNX Runtime library, or a failure saying how to install it.
-fn ort_library() -> PathBuf {
-    let lib = match std::env::var_os(ONNXRUNTIME_ENV) {
-        Some(p) if !p.is_empty() => PathBuf::from(p),
-        _ => repo_root().join(".onnxruntime").join(ONNXRUNTIME_LIBRARY),
-    };
-    assert!(
-        lib.is_file(),
-        "ONNX Runtime library {} not found: run tools/scripts/ensure-onnxruntime.sh (or set {ONNXRUNTIME_ENV})",
-        lib.display()
-    );
-    lib
-}
-
-fn read_f32(path: &Path) -> Vec<f32> {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    assert_eq!(bytes.len() % 4, 0, "{}", path.display());
-    bytes
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect()
-}
 
 /// `max |got - want| <= tolerance * max |want|` (the fixtures' rule), with the worst index.
 fn assert_close(what: &str, got: &[f64], want: &[f64], tolerance: f64) {

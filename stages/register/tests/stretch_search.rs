@@ -5,38 +5,14 @@
 //!
 //! Needs ONNX Runtime's library, as tests/learned_parity.rs.
 
-use std::path::{Path, PathBuf};
+mod common;
 
+use common::{ort_library, read_f32, repo_root};
 use gprflow_register::engineered::SubmapView;
-use gprflow_register::learned::{Features, Model, ONNXRUNTIME_ENV, ONNXRUNTIME_LIBRARY};
+use gprflow_register::learned::{Features, Model};
 use gprflow_register::stretch::{factors, stretch_rows};
 
 const FIXTURES: &str = "stages/register/tests/fixtures/learned";
-
-fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn ort_library() -> PathBuf {
-    let lib = match std::env::var_os(ONNXRUNTIME_ENV) {
-        Some(p) if !p.is_empty() => PathBuf::from(p),
-        _ => repo_root().join(".onnxruntime").join(ONNXRUNTIME_LIBRARY),
-    };
-    assert!(
-        lib.is_file(),
-        "ONNX Runtime library {} not found: run tools/scripts/ensure-onnxruntime.sh (or set {ONNXRUNTIME_ENV})",
-        lib.display()
-    );
-    lib
-}
-
-fn read_f32(path: &Path) -> Vec<f32> {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    bytes
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect()
-}
 
 fn view(pixels: &[f32]) -> SubmapView<'_> {
     SubmapView {
@@ -45,6 +21,25 @@ fn view(pixels: &[f32]) -> SubmapView<'_> {
         cols: 200,
         resolution_m: 0.015,
     }
+}
+
+fn committed_model() -> Model {
+    let root = repo_root();
+    Model::load(
+        &root.join("stages/register/models/ground_encoding.onnx"),
+        &root.join("stages/register/models/ground_encoding.head.json"),
+        Some(&ort_library()),
+    )
+    .expect("the committed model")
+}
+
+/// A fixture case's reference and query submaps.
+fn fixture_pair(name: &str) -> (Vec<f32>, Vec<f32>) {
+    let dir = repo_root().join(FIXTURES);
+    (
+        read_f32(&dir.join(format!("{name}.reference.f32"))),
+        read_f32(&dir.join(format!("{name}.query.f32"))),
+    )
 }
 
 /// The query's features at each factor of the search.
@@ -60,18 +55,10 @@ fn search(model: &mut Model, query: &[f32], at: &[f64]) -> Vec<Features> {
 
 #[test]
 fn a_stretched_query_is_found_again_at_the_factor_that_undoes_it() {
-    let root = repo_root();
-    let mut model = Model::load(
-        &root.join("stages/register/models/ground_encoding.onnx"),
-        &root.join("stages/register/models/ground_encoding.head.json"),
-        Some(&ort_library()),
-    )
-    .expect("the committed model");
-    let dir = root.join(FIXTURES);
+    let mut model = committed_model();
     // two passes of one by_hand run over the same ground (held-out scenario), registered as
     // they are (manifest: target -0.934 m, mean peak 0.644, registered)
-    let reference = read_f32(&dir.join("different_legs.reference.f32"));
-    let query = read_f32(&dir.join("different_legs.query.f32"));
+    let (reference, query) = fixture_pair("different_legs");
     let target_m = -0.933_918_880_828_944;
     let fr = model.encode(&view(&reference)).expect("encodes");
 
@@ -127,18 +114,10 @@ fn a_stretched_query_is_found_again_at_the_factor_that_undoes_it() {
 
 #[test]
 fn two_runs_over_soil_of_other_moisture_register_only_with_the_search() {
-    let root = repo_root();
-    let mut model = Model::load(
-        &root.join("stages/register/models/ground_encoding.onnx"),
-        &root.join("stages/register/models/ground_encoding.head.json"),
-        Some(&ort_library()),
-    )
-    .expect("the committed model");
-    let dir = root.join(FIXTURES);
+    let mut model = committed_model();
     // two runs over the same ground of the held-out scenario, the soil's moisture different
     // (manifest: target -1.359 m, mean peak 0.376, refused, the head's shift -0.24 m)
-    let reference = read_f32(&dir.join("different_runs.reference.f32"));
-    let query = read_f32(&dir.join("different_runs.query.f32"));
+    let (reference, query) = fixture_pair("different_runs");
     let target_m = -1.358_790_073_053_071_5;
     let fr = model.encode(&view(&reference)).expect("encodes");
     let unstretched = search(&mut model, &query, &[1.0]);
