@@ -216,7 +216,8 @@ struct Entry {
     pixels: Vec<f32>,
     /// When the rig was over each column, ns, in ground order (empty when the submap has none).
     column_stamps_ns: Vec<i64>,
-    /// The learned model's features (encoded once, on arrival).
+    /// The learned model's features, encoded once when the submap is first needed: as a
+    /// query with loop candidates, or kept as a reference (most submaps are neither).
     features: Option<Features>,
 }
 
@@ -293,6 +294,8 @@ struct Counts {
     never_placed: u64,
     /// Learned registrations whose query was stretched.
     stretched: u64,
+    /// Encoder runs, the stretch search's among them.
+    encoded: u64,
 }
 
 /// The register stage.
@@ -348,7 +351,7 @@ impl RegisterStage {
         Ok(())
     }
 
-    fn process(&mut self, q: Entry, stamp_ns: i64, out: &mut Outputs) -> std::result::Result<(), StageError> {
+    fn process(&mut self, mut q: Entry, stamp_ns: i64, out: &mut Outputs) -> std::result::Result<(), StageError> {
         let gap = self.max_gap_ns();
         let Some(q_pose) = q.anchor.locate(self.association(), gap) else {
             self.counts.never_placed += 1;
@@ -378,6 +381,7 @@ impl RegisterStage {
             let queries = if found.is_empty() {
                 Vec::new()
             } else {
+                self.encode(&mut q)?;
                 self.query_features(&q)?
             };
             for (index, _) in found {
@@ -400,7 +404,18 @@ impl RegisterStage {
                 >= self.params.reference_spacing_m
         });
         if keep {
+            self.encode(&mut q)?;
             self.references.push(q);
+        }
+        Ok(())
+    }
+
+    /// Encodes `e` with the learned model unless it is already encoded (or the method has
+    /// no model).
+    fn encode(&mut self, e: &mut Entry) -> std::result::Result<(), StageError> {
+        if let (Some(model), None) = (self.model.as_mut(), e.features.as_ref()) {
+            e.features = Some(model.encode(&e.view()).map_err(StageError::failed)?);
+            self.counts.encoded += 1;
         }
         Ok(())
     }
@@ -424,6 +439,7 @@ impl RegisterStage {
                 ..q.view()
             };
             out.push(model.encode(&view).map_err(StageError::failed)?);
+            self.counts.encoded += 1;
         }
         Ok(out)
     }
@@ -702,12 +718,7 @@ impl Stage for RegisterStage {
                     self.counts.not_salient += 1;
                 } else {
                     match Entry::from_msg(&m) {
-                        Ok(mut e) => {
-                            if let Some(model) = self.model.as_mut() {
-                                e.features = Some(model.encode(&e.view()).map_err(StageError::failed)?);
-                            }
-                            self.pending.push_back(e);
-                        }
+                        Ok(e) => self.pending.push_back(e),
                         Err(why) => self.drops.record(Self::NAME, &input, &why),
                     }
                 }
@@ -751,6 +762,7 @@ impl Stage for RegisterStage {
             not_salient = c.not_salient,
             never_placed = c.never_placed,
             stretched = c.stretched,
+            encoded = c.encoded,
             "register ({}): {} registrations from {} candidate pairs ({} refused by the method's gate)",
             self.params.method.name(),
             c.sent,
