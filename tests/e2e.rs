@@ -1668,6 +1668,63 @@ fn localisation_with_the_learned_model_and_the_oracle() {
     }
 }
 
+/// The number after `key=` in a stage's log (its last mention), e.g. the register stage's
+/// `stretched=` count.
+fn logged_count(log: &str, key: &str) -> Option<u64> {
+    let pattern = format!(" {key}=");
+    let at = log.rfind(&pattern)? + pattern.len();
+    let digits: String = log[at..].chars().take_while(char::is_ascii_digit).collect();
+    digits.parse().ok()
+}
+
+/// The simulated basement's `by_hand` run (wander, drying soil, uneven ground contact), as
+/// the shipped graph localises it: the learned model registers queries whose travel times it
+/// stretched, the estimator gates a registration far from its estimate, and the run ends
+/// closer to the truth than the same graph with the search and the gate off, and far closer
+/// than odometry alone.
+#[test]
+fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
+    let rec = simulated(
+        "basement-by_hand.mcap",
+        &["tools/sim/scenarios/basement.yaml", "--run", "by_hand"],
+    );
+    let rec = rec.to_str().expect("utf8").to_owned();
+    let localise = |graph: &str, sets: &[&str]| {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut all = vec![format!("recording={rec}")];
+        all.extend(sets.iter().map(|s| (*s).to_owned()));
+        let (p, o) = launch_recorded(dir.path(), graph, &all);
+        let registrations = p.get("/register/registration").map_or(0, Vec::len);
+        let ate = eval_json(&dir.path().join("run.mcap"), &rec)["ate"]["rmse"]
+            .as_f64()
+            .expect("ate");
+        (registrations, stderr(&o), ate)
+    };
+    let (n, log, ate) = localise("graphs/localize.yaml", &["method=learned"]);
+    let (n_off, log_off, ate_off) = localise(
+        "graphs/localize.yaml",
+        &["method=learned", "stretch_steps=0", "gate_m=0"],
+    );
+    let (_, _, ate_odo) = localise("graphs/odometry.yaml", &[]);
+    let stretched = logged_count(&log, "stretched").expect("the register stage's counts");
+    assert!(
+        stretched > 0 && n > n_off,
+        "{n} registrations ({stretched} stretched), {n_off} without the search"
+    );
+    assert_eq!(logged_count(&log_off, "stretched"), Some(0));
+    // the estimate stage logs its count only when it dropped something
+    let gated = logged_count(&log, "gated").unwrap_or(0);
+    assert!(
+        gated >= 1 && gated * 10 < n as u64,
+        "{gated} of {n} registrations gated"
+    );
+    assert!(logged_count(&log_off, "gated").is_none(), "gate off, yet: {log_off}");
+    assert!(
+        ate < ate_off && ate < 0.25 * ate_odo,
+        "ATE {ate} m, {ate_off} m without the search and the gate, {ate_odo} m odometry"
+    );
+}
+
 #[test]
 fn register_refuses_an_oracle_without_truth_and_a_missing_model() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -122,8 +122,10 @@ pub struct RegisterParams {
     /// rows stretched by `1 +- k * stretch_step` for `k` in `1..=stretch_steps`, and for each
     /// pair the stretch whose features share most with the reference (highest mean channel
     /// peak) is the one the checks and the head judge. It follows the wave speed changing
-    /// between passes (drying soil). Default 0 (off): with 1 it registers more pairs but lets
-    /// through rare wrong matches the checks were not chosen for (README, "Localisation").
+    /// between passes (drying soil). Default 0 (off); graphs/localize.yaml sets 1. It
+    /// registers more pairs on runs whose soil dried between passes, and lets through rare
+    /// wrong matches the checks were not chosen for, which the estimator's registration gate
+    /// is there to drop (README, "Localisation").
     pub stretch_steps: usize,
     /// Relative stretch between two neighbouring factors of the search (default 0.015).
     pub stretch_step: f64,
