@@ -6,7 +6,7 @@
 # far the registrations were from the estimate when they arrived.
 #
 #   tools/scripts/residuals.sh                  # out/residuals: recordings, logs, the table
-#   tools/scripts/residuals.sh --set stretch_steps=1
+#   tools/scripts/residuals.sh --set stretch_steps=0   # without the stretch search (on by default)
 #   GPRFLOW=target/debug/gprflow tools/scripts/residuals.sh
 # About 6 minutes on 2 cores.
 set -euo pipefail
