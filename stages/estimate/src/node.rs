@@ -419,23 +419,25 @@ impl Stage for EstimateStage {
                     ) => {
                         let gated = matches!(o, RegistrationOutcome::Gated { .. });
                         self.gated_registrations += u64::from(gated);
-                        // tools/scripts/residuals.py reads these lines
-                        let verdict = if gated {
-                            format!(
-                                "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
-                            )
-                        } else {
-                            "registration added".to_owned()
-                        };
-                        tracing::debug!(
-                            seq = input.seq(),
-                            reference_stamp_ns = r.reference_stamp_ns,
-                            query_stamp_ns = r.query_stamp_ns,
-                            along_track_m = r.along_track_m,
-                            residual_m,
-                            gate_m,
-                            "{verdict}"
-                        );
+                        // tools/scripts/residuals.py reads these lines (built only when they go out)
+                        if tracing::enabled!(tracing::Level::DEBUG) {
+                            let verdict = if gated {
+                                format!(
+                                    "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
+                                )
+                            } else {
+                                "registration added".to_owned()
+                            };
+                            tracing::debug!(
+                                seq = input.seq(),
+                                reference_stamp_ns = r.reference_stamp_ns,
+                                query_stamp_ns = r.query_stamp_ns,
+                                along_track_m = r.along_track_m,
+                                residual_m,
+                                gate_m,
+                                "{verdict}"
+                            );
+                        }
                     }
                     None => {}
                 }

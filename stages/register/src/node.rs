@@ -484,20 +484,24 @@ impl RegisterStage {
                     .assess_best(fr, queries, q.resolution_m)
                     .map_err(StageError::failed)?;
                 let stretch = self.stretches.get(at).copied().unwrap_or(1.0);
-                // one line per pair, registered or not (tools/scripts/refusals.py reads the refused)
-                let verdict = refusal.map_or_else(|| "registered".to_owned(), |why| format!("not registered: {why:?}"));
-                tracing::debug!(
-                    reference = r.id,
-                    query = q.id,
-                    reference_stamp_ns = r.anchor.stamp_ns,
-                    query_stamp_ns = q.anchor.stamp_ns,
-                    shift_m = m.shift_m,
-                    share_score = m.share_score,
-                    agreement = m.agreement,
-                    stretch,
-                    corr = ?m.corr,
-                    "{verdict}"
-                );
+                // one line per pair, registered or not (tools/scripts/refusals.py reads the
+                // refused; built only when it goes out)
+                if tracing::enabled!(tracing::Level::DEBUG) {
+                    let verdict =
+                        refusal.map_or_else(|| "registered".to_owned(), |why| format!("not registered: {why:?}"));
+                    tracing::debug!(
+                        reference = r.id,
+                        query = q.id,
+                        reference_stamp_ns = r.anchor.stamp_ns,
+                        query_stamp_ns = q.anchor.stamp_ns,
+                        shift_m = m.shift_m,
+                        share_score = m.share_score,
+                        agreement = m.agreement,
+                        stretch,
+                        corr = ?m.corr,
+                        "{verdict}"
+                    );
+                }
                 if refusal.is_some() {
                     return Ok(None);
                 }
