@@ -43,19 +43,7 @@ odometry_only_sets
 for w in "${worlds[@]}"; do
     read -r name scenario run <<< "$w"
     for ((k = 1; k <= n; k++)); do
-        rec="$recs/$name-$run-$k.mcap"
-        [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" --repeat "$k" > /dev/null
-        for m in odometry learned oracle; do
-            base="$out/$name-$k-$m"
-            [[ "${REUSE:-0}" == 1 && -s "$base.json" ]] && continue
-            if [[ $m == odometry ]]; then
-                $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
-                $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
-            else
-                localise "$rec" "$m" "$base" "${sets[@]}"
-            fi
-            rm -f "$base.mcap"
-        done
+        repeat_runs "$name" "$scenario" "$run" "$k" odometry learned oracle
         echo "$name repeat $k done" >&2
     done
 done

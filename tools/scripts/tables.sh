@@ -2,15 +2,19 @@
 # Reproduces seed 000 Table 4.1 (registration error per model and environment, cm) and
 # Fig. 4.14 (ATE per environment for odometry, engineered, learned and oracle) on the
 # simulator's evaluation worlds, and writes both tables into README.md between the
-# `tables:begin` / `tables:end` markers.
+# `tables:begin` / `tables:end` markers. Table 4.1 comes from each world's run. Fig. 4.14 is
+# over several sequences per environment (15 in all in the thesis), so its table here is over
+# each world's run and its repeats 1..n (`gprflow sim --repeat`: fresh sensor noise and
+# vibration, the same world and path), as tools/scripts/repeats.sh makes them.
 #
 # Every localisation run uses graphs/localize.yaml with the oracle association (ground-truth
 # loop candidates), so that all models see the same pairs (§4.8.4), and the same
 # registration sigma. Registration errors come from `gprflow eval` (each registration
 # against the truth's relative pose between its two anchor stamps).
 #
-#   tools/scripts/tables.sh            # about 15 minutes on 2 cores
+#   tools/scripts/tables.sh            # about 25 minutes on 2 cores (8 repeats)
 #   tools/scripts/tables.sh --no-readme  # print only
+#   tools/scripts/tables.sh -n 0       # Fig. 4.14 from each world's run alone (5 minutes)
 #   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
 #                                      # off its path, the soil dries): out/tables-by-hand,
 #                                      # README markers tables-by-hand:begin / :end
@@ -25,12 +29,17 @@ source tools/scripts/lib/worlds.sh
 script=tables.sh
 write_readme=1
 by_hand=0
+n=8
 sets=()
 while [[ $# -gt 0 ]]; do
     take_common_arg "$@"
     if [[ $took -gt 0 ]]; then shift "$took"; continue; fi
     case $1 in
         --no-readme) write_readme=0 ;;
+        -n)
+            [[ $# -ge 2 && $2 =~ ^[0-9]+$ ]] || { echo "tables.sh: -n needs a count" >&2; exit 2; }
+            n=$2
+            shift ;;
         *) echo "tables.sh: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
@@ -71,11 +80,15 @@ for w in "${worlds[@]}"; do
         localise "$rec" "$method" "$out/$name-$m" "${extra[@]}" "${sets[@]}"
         echo "$name $m done" >&2
     done
+    for ((k = 1; k <= n; k++)); do
+        repeat_runs "$name" "$scenario" "$run" "$k" odometry engineered learned oracle
+        echo "$name repeat $k done" >&2
+    done
 done
 
-python3 - "$out" "$write_readme" "$marker" <<'EOF'
-import json, math, pathlib, re, sys
-out, write, marker = pathlib.Path(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
+python3 - "$out" "$write_readme" "$marker" "$n" <<'EOF'
+import json, math, pathlib, re, statistics, sys
+out, write, marker, repeats = pathlib.Path(sys.argv[1]), sys.argv[2] == "1", sys.argv[3], int(sys.argv[4])
 worlds = ["basement", "factory_floor", "parking_garage"]
 models = ["engineered", "zeroth", "learned", "nonlinear", "oracle"]
 def load(w, m):
@@ -96,10 +109,27 @@ for m in models:
     comb = f"{100 * math.sqrt(sq / n):.2f}" if n else "-"
     label = {"learned": "learned linear", "nonlinear": "learned nonlinear"}.get(m, m)
     lines.append(f"| {label} | " + " | ".join(cells) + f" | {comb} |")
-lines += ["", "ATE (RMSE of the final trajectory against the truth, m, no alignment):", "",
-          "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
-for m in ["odometry", "engineered", "learned", "oracle"]:
-    lines.append(f"| {m} | " + " | ".join(f"{load(w, m)['ate']['rmse']:.3f}" for w in worlds) + " |")
+def ates(w, m):
+    """The ATE of model m over world w's sequences: its run, then its repeats 1..repeats."""
+    return [load(s, m)["ate"]["rmse"] for s in [w] + [f"{w}-{k}" for k in range(1, repeats + 1)]]
+if repeats == 0:
+    lines += ["", "ATE (RMSE of the final trajectory against the truth, m, no alignment; each world's run):", "",
+              "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
+    for m in ["odometry", "engineered", "learned", "oracle"]:
+        lines.append(f"| {m} | " + " | ".join(f"{ates(w, m)[0]:.3f}" for w in worlds) + " |")
+else:
+    lines += ["", f"ATE (RMSE of the final trajectory against the truth, m, no alignment) over {repeats + 1} sequences per "
+              f"world, its run and repeats 1-{repeats} (fresh sensor noise): mean [min, max]:", "",
+              "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
+    for m in ["odometry", "engineered", "learned", "oracle"]:
+        cells = [f"{statistics.mean(v):.3f} [{min(v):.3f}, {max(v):.3f}]" for v in (ates(w, m) for w in worlds)]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+cells = []
+for w in worlds:
+    learned, oracle = ates(w, "learned"), ates(w, "oracle")
+    within = sum(a <= 1.15 * b for a, b in zip(learned, oracle))
+    cells.append(f"{statistics.mean(learned) / statistics.mean(oracle):.2f}; within 15 % in {within} of {repeats + 1}")
+lines.append("| learned / oracle (of the means; per sequence) | " + " | ".join(cells) + " |")
 table = "\n".join(lines)
 print(table)
 if write:

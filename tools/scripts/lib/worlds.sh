@@ -1,6 +1,6 @@
 # Shared by tools/scripts/tables.sh and tools/scripts/repeats.sh (sourced, not run): their
 # common arguments, the gprflow binary, the evaluation worlds, the output folders and the
-# localisation run they all make.
+# localisation and repeat runs they all make.
 # The caller sets `script` (its name, for messages), `by_hand=0` and `sets=()` first.
 
 # Takes `--by-hand` or `--set KEY=VALUE` off the front of "$@": sets `took` to how many
@@ -71,4 +71,28 @@ localise() {
     $g launch graphs/localize.yaml --set recording="$rec" --set method="$method" --set association=truth \
         "$@" --record "$base.mcap" > "$base.log" 2>&1
     $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
+}
+
+# Simulates repeat $4 of world $1's run ($2 scenario, $3 run; `gprflow sim --repeat`: fresh
+# sensor noise and vibration, the same world and path) into $recs when it is not there, and
+# runs it with each model after the fourth argument (odometry: graphs/odometry.yaml; else
+# `localise`) into $out/<world>-<repeat>-<model>.json and .log, keeping no run recording.
+# With REUSE=1 a model whose JSON is there is skipped. Needs `g`, `recs`, `out`,
+# `odometry_sets` and `sets`.
+repeat_runs() {
+    local name=$1 scenario=$2 run=$3 k=$4 m base
+    shift 4
+    local rec="$recs/$name-$run-$k.mcap"
+    [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" --repeat "$k" > /dev/null
+    for m in "$@"; do
+        base="$out/$name-$k-$m"
+        [[ "${REUSE:-0}" == 1 && -s "$base.json" ]] && continue
+        if [[ $m == odometry ]]; then
+            $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
+            $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
+        else
+            localise "$rec" "$m" "$base" "${sets[@]}"
+        fi
+        rm -f "$base.mcap"
+    done
 }
