@@ -12,7 +12,7 @@
 # registration sigma. Registration errors come from `gprflow eval` (each registration
 # against the truth's relative pose between its two anchor stamps).
 #
-#   tools/scripts/tables.sh            # about 25 minutes on 2 cores (8 repeats)
+#   tools/scripts/tables.sh            # about 20 minutes on 2 cores (8 repeats)
 #   tools/scripts/tables.sh --no-readme  # print only
 #   tools/scripts/tables.sh -n 0       # Fig. 4.14 from each world's run alone (5 minutes)
 #   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
@@ -119,7 +119,7 @@ if repeats == 0:
         lines.append(f"| {m} | " + " | ".join(f"{ates(w, m)[0]:.3f}" for w in worlds) + " |")
 else:
     lines += ["", f"ATE (RMSE of the final trajectory against the truth, m, no alignment) over {repeats + 1} sequences per "
-              f"world, its run and repeats 1-{repeats} (fresh sensor noise): mean [min, max]:", "",
+              f"world, the world's run and its repeats 1-{repeats} with fresh sensor noise: mean [min, max]:", "",
               "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
     for m in ["odometry", "engineered", "learned", "oracle"]:
         cells = [f"{statistics.mean(v):.3f} [{min(v):.3f}, {max(v):.3f}]" for v in (ates(w, m) for w in worlds)]
