@@ -1681,7 +1681,9 @@ fn logged_count(log: &str, key: &str) -> Option<u64> {
 /// the shipped graph localises it: the learned model registers queries whose travel times it
 /// stretched, the estimator gates a registration far from its estimate, and the run ends
 /// closer to the truth than the same graph with the search and the gate off, and far closer
-/// than odometry alone.
+/// than odometry alone. The register stage encodes a submap once, only when it is a query
+/// with loop candidates or a kept reference, and the search adds two stretched encodings per
+/// query.
 #[test]
 fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
     let rec = simulated(
@@ -1719,6 +1721,20 @@ fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
         "{gated} of {n} registrations gated"
     );
     assert!(logged_count(&log_off, "gated").is_none(), "gate off, yet: {log_off}");
+    for (log, stretched_per_query) in [(&log, 2), (&log_off, 0)] {
+        let count = |key| logged_count(log, key).unwrap_or_else(|| panic!("no {key}= in {log}"));
+        let (encoded, queries, references) = (count("encoded"), count("queries"), count("references"));
+        // the submaps encoded unstretched: every query and every reference, a submap that is
+        // both once, and none of the rest
+        let once = encoded
+            .checked_sub(stretched_per_query * queries)
+            .unwrap_or_else(|| panic!("{encoded} encoder runs for {queries} queries"));
+        assert!(
+            queries.max(references) <= once && once <= queries + references && once < count("valid"),
+            "{encoded} encoder runs for {queries} queries, {references} references, {} submaps",
+            count("valid")
+        );
+    }
     assert!(
         ate < ate_off && ate < 0.25 * ate_odo,
         "ATE {ate} m, {ate_off} m without the search and the gate, {ate_odo} m odometry"
