@@ -66,8 +66,7 @@ for w in "${worlds[@]}"; do
     rec="$recs/$name-$run.mcap"
     [[ -f "$rec" ]] || $g sim "$scenario" -o "$rec" --run "$run" > /dev/null
     if [[ "${REUSE:-0}" != 1 || ! -s "$out/$name-odometry.json" ]]; then
-        $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$out/$name-odometry.mcap" > "$out/$name-odometry.log" 2>&1
-        $g eval "$out/$name-odometry.mcap" --truth "$rec" --format json > "$out/$name-odometry.json"
+        odometry_run "$rec" "$out/$name-odometry"
     fi
     for m in "${models[@]}"; do
         [[ "${REUSE:-0}" == 1 && -s "$out/$name-$m.json" ]] && continue
@@ -87,10 +86,11 @@ for w in "${worlds[@]}"; do
 done
 
 python3 - "$out" "$write_readme" "$marker" "$n" <<'EOF'
-import json, math, pathlib, re, statistics, sys
+import functools, json, math, pathlib, re, statistics, sys
 out, write, marker, repeats = pathlib.Path(sys.argv[1]), sys.argv[2] == "1", sys.argv[3], int(sys.argv[4])
 worlds = ["basement", "factory_floor", "parking_garage"]
 models = ["engineered", "zeroth", "learned", "nonlinear", "oracle"]
+@functools.cache
 def load(w, m):
     return json.loads((out / f"{w}-{m}.json").read_text())
 lines = ["Registration error (RMSE of the along-track error against the truth, cm; pairs from the oracle association; n = registrations):", "",
@@ -113,17 +113,14 @@ def ates(w, m):
     """The ATE of model m over world w's sequences: its run, then its repeats 1..repeats."""
     return [load(s, m)["ate"]["rmse"] for s in [w] + [f"{w}-{k}" for k in range(1, repeats + 1)]]
 if repeats == 0:
-    lines += ["", "ATE (RMSE of the final trajectory against the truth, m, no alignment; each world's run):", "",
-              "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
-    for m in ["odometry", "engineered", "learned", "oracle"]:
-        lines.append(f"| {m} | " + " | ".join(f"{ates(w, m)[0]:.3f}" for w in worlds) + " |")
+    over, cell = "each world's run", lambda v: f"{v[0]:.3f}"
 else:
-    lines += ["", f"ATE (RMSE of the final trajectory against the truth, m, no alignment) over {repeats + 1} sequences per "
-              f"world, the world's run and its repeats 1-{repeats} with fresh sensor noise: mean [min, max]:", "",
-              "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
-    for m in ["odometry", "engineered", "learned", "oracle"]:
-        cells = [f"{statistics.mean(v):.3f} [{min(v):.3f}, {max(v):.3f}]" for v in (ates(w, m) for w in worlds)]
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    over = f"over {repeats + 1} sequences per world, the world's run and its repeats 1-{repeats} with fresh sensor noise: mean [min, max]"
+    cell = lambda v: f"{statistics.mean(v):.3f} [{min(v):.3f}, {max(v):.3f}]"
+lines += ["", f"ATE (RMSE of the final trajectory against the truth, m, no alignment) {over}:", "",
+          "| run | " + " | ".join(worlds) + " |", "|---|" + "---|" * len(worlds)]
+for m in ["odometry", "engineered", "learned", "oracle"]:
+    lines.append(f"| {m} | " + " | ".join(cell(ates(w, m)) for w in worlds) + " |")
 cells = []
 for w in worlds:
     learned, oracle = ates(w, "learned"), ates(w, "oracle")

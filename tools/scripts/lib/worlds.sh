@@ -73,9 +73,18 @@ localise() {
     $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
 }
 
+# Runs recording $1 with odometry alone (graphs/odometry.yaml, on the wheel of `odometry_sets`)
+# and evaluates it against the recording's truth: $2.mcap, $2.log and $2.json. Needs `g` and
+# `odometry_sets` (odometry_only_sets).
+odometry_run() {
+    local rec=$1 base=$2
+    $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
+    $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
+}
+
 # Simulates repeat $4 of world $1's run ($2 scenario, $3 run; `gprflow sim --repeat`: fresh
 # sensor noise and vibration, the same world and path) into $recs when it is not there, and
-# runs it with each model after the fourth argument (odometry: graphs/odometry.yaml; else
+# runs it with each model after the fourth argument (odometry: `odometry_run`; else
 # `localise`) into $out/<world>-<repeat>-<model>.json and .log, keeping no run recording.
 # With REUSE=1 a model whose JSON is there is skipped. Needs `g`, `recs`, `out`,
 # `odometry_sets` and `sets`.
@@ -88,8 +97,7 @@ repeat_runs() {
         base="$out/$name-$k-$m"
         [[ "${REUSE:-0}" == 1 && -s "$base.json" ]] && continue
         if [[ $m == odometry ]]; then
-            $g launch graphs/odometry.yaml --set recording="$rec" "${odometry_sets[@]}" --record "$base.mcap" > "$base.log" 2>&1
-            $g eval "$base.mcap" --truth "$rec" --format json > "$base.json"
+            odometry_run "$rec" "$base"
         else
             localise "$rec" "$m" "$base" "${sets[@]}"
         fi
