@@ -1723,16 +1723,16 @@ fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
     assert!(logged_count(&log_off, "gated").is_none(), "gate off, yet: {log_off}");
     for (log, stretched_per_query) in [(&log, 2), (&log_off, 0)] {
         let count = |key| logged_count(log, key).unwrap_or_else(|| panic!("no {key}= in {log}"));
-        let (encoded, queries, references) = (count("encoded"), count("queries"), count("references"));
+        let (encoded, queries, references, submaps) =
+            (count("encoded"), count("queries"), count("references"), count("valid"));
         // the submaps encoded unstretched: every query and every reference, a submap that is
         // both once, and none of the rest
         let once = encoded
             .checked_sub(stretched_per_query * queries)
             .unwrap_or_else(|| panic!("{encoded} encoder runs for {queries} queries"));
         assert!(
-            queries.max(references) <= once && once <= queries + references && once < count("valid"),
-            "{encoded} encoder runs for {queries} queries, {references} references, {} submaps",
-            count("valid")
+            queries.max(references) <= once && once <= queries + references && once < submaps,
+            "{encoded} encoder runs for {queries} queries, {references} references, {submaps} submaps"
         );
     }
     assert!(
