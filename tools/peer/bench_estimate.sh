@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The estimation benchmark, side by side in one run: GTSAM 4.3 and gprflow solve the same
-# problem exported by the GTSAM peer (../shared/peers/gtsam/gtsam_bench.py: N states at 10 Hz,
-# 200 Hz IMU, wheel odometry, a loop closure every 50 states).
+# problem file, made by our generator (tools/peer/gtsam_problem.py: N states at 10 Hz, 200 Hz IMU,
+# wheel odometry, a loop closure every 50 states, one wall-distance record per state).
 #   1. GTSAM: batch Levenberg-Marquardt, then iSAM2 (QR) one update per state, as fast as it goes;
 #   2. gprflow: batch LM, then the fixed-lag smoother one update per state, as fast as it goes;
 #   3. gprflow: the smoother fed at the problem's 10 Hz, as a live pipeline (N/10 seconds);
@@ -20,10 +20,9 @@ fi
 "$venv/bin/python" -c 'import gtsam, numpy' 2>/dev/null || "$venv/bin/pip" install -q gtsam==4.3.0 numpy
 mkdir -p "$out"
 problem="$out/p$n.txt"
-if [ ! -f "$problem" ]; then
-    (cd "$out" && "$OLDPWD/$venv/bin/python" "$OLDPWD/../shared/peers/gtsam/gtsam_bench.py" "$n" --lines \
-        --fact QR --no-isam --no-batch --export "p$n.txt" --out peer >/dev/null)
-fi
+# Made afresh each run (about 2 s at N=2000, fixed seed), so a file left by an older generator
+# is never benchmarked by mistake.
+"$venv/bin/python" tools/peer/gtsam_problem.py "$n" --lines -o "$problem"
 cargo build --release -p gprflow-cli
 gprflow=./target/release/gprflow
 echo "== GTSAM 4.3: batch LM and iSAM2"

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Peer check of the estimation library against GTSAM 4.3.
 #
-# Installs gtsam==4.3.0 and numpy into .venv-gtsam, exports a small problem with the GTSAM
-# peer (../shared/peers/gtsam/gtsam_bench.py: N=300 states, a 100-state lap so that it has
-# loop closures), solves that same file with GTSAM (tools/peer/gtsam_solve.py) and writes the
-# fixture the Rust test compares against:
-#   stages/estimate/tests/fixtures/peer_n300.txt         the exported problem
+# Installs gtsam==4.3.0 and numpy into .venv-gtsam, generates a small problem with our own
+# generator (tools/peer/gtsam_problem.py: N=300 states, a 100-state lap so that it has loop
+# closures; line records too, so that the fixture holds every record type), solves that same file
+# with GTSAM (tools/peer/gtsam_solve.py) and writes the fixture the Rust test compares against:
+#   stages/estimate/tests/fixtures/peer_n300.txt         the problem
 #   stages/estimate/tests/fixtures/peer_n300.gtsam.json  GTSAM's batch error and ATE on it
 # then runs that test (cargo nextest run -p gprflow-estimate --test peer_gtsam).
 #
@@ -16,7 +16,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 venv=.venv-gtsam
-peer=../shared/peers/gtsam/gtsam_bench.py
 fixtures=stages/estimate/tests/fixtures
 if [ ! -x "$venv/bin/python" ]; then
     python3 -m venv "$venv"
@@ -37,13 +36,8 @@ print("GTSAM reproduces the committed fixture:", {k: fresh[k] for k in ("batch_e
 PY
     exit 0
 fi
-if [ ! -f "$peer" ]; then
-    echo "peer script $peer not found; run with --verify to re-solve the committed problem" >&2
-    exit 2
-fi
-(cd "$tmp" && "$OLDPWD/$venv/bin/python" "$OLDPWD/$peer" 300 --lap 100 --fact QR --no-isam \
-    --export problem.txt --out peer >/dev/null)
-cp "$tmp/problem.txt" "$fixtures/peer_n300.txt"
+# Deterministic (fixed seed): the same file comes out until the generator changes.
+"$venv/bin/python" tools/peer/gtsam_problem.py 300 --lap 100 --lines -o "$fixtures/peer_n300.txt"
 "$venv/bin/python" tools/peer/gtsam_solve.py "$fixtures/peer_n300.txt" > "$fixtures/peer_n300.gtsam.json"
 cat "$fixtures/peer_n300.gtsam.json"
 cargo nextest run -p gprflow-estimate --test peer_gtsam

@@ -1,8 +1,9 @@
-"""Solves a problem exported by shared/peers/gtsam/gtsam_bench.py with GTSAM 4.3, reading the
+"""Solves a problem file written by tools/peer/gtsam_problem.py with GTSAM 4.3, reading the
 file (not re-simulating), so that GTSAM and `gprflow bench estimate` solve the same graph:
 CombinedImuFactor preintegrated at zero bias, odometry BetweenFactorPose3, Huber(1.345) loop
-closures, priors as the peer, batch Levenberg-Marquardt from the dead-reckoning guess, and
-optionally iSAM2 one state at a time. Prints one JSON object.
+closures, the format's priors on state 0 (pose 1e-3, velocity 0.01, bias 0.1), batch
+Levenberg-Marquardt from the dead-reckoning guess, and optionally iSAM2 one state at a time.
+Prints one JSON object.
 
 usage: .venv-gtsam/bin/python tools/peer/gtsam_solve.py problem.txt [--isam2]   (no line factors)
 """
