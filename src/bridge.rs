@@ -197,12 +197,12 @@ pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteRe
     }
 }
 
-fn copy_into(payload: &[u8]) -> impl FnMut(&mut [std::mem::MaybeUninit<u8>]) -> Result<(), crate::msg::MsgError> + '_ {
-    move |buf| {
-        for (slot, b) in buf.iter_mut().zip(payload) {
-            slot.write(*b);
-        }
-        Ok(())
+fn copy_into(
+    payload: &[u8],
+) -> impl FnMut(crate::msg::PayloadWriter<'_>) -> Result<crate::msg::Written, crate::msg::MsgError> + '_ {
+    move |mut out| {
+        out.put(payload)?;
+        out.finish()
     }
 }
 

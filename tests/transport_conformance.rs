@@ -245,7 +245,7 @@ fn a_gap_on_a_lossless_topic_is_an_error<S: Sut>(sut: S) {
         let mut p = transport.publisher(&t).expect("publisher");
         bus::wait_for_subscribers(p.as_ref(), 1, TIMEOUT, &never).expect("handshake");
         for seq in [0u64, 1, 5] {
-            p.send_with(FrameHeader::data(seq, 10), 0, &mut |_| Ok(()))
+            p.send_with(FrameHeader::data(seq, 10), 0, &mut |out| out.finish())
                 .expect("send");
         }
         let start = Instant::now();

@@ -7,6 +7,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
+use crate::msg;
+
 use super::{BusError, FillFn, Frame, FrameData, FrameHeader, Publisher, Result, Subscriber, TopicConfig, Transport};
 
 const POLL: Duration = Duration::from_millis(20);
@@ -125,11 +127,12 @@ impl Publisher for InProcPub {
 
     fn send_with(&mut self, header: FrameHeader, len: usize, fill: &mut FillFn<'_>) -> Result<usize> {
         let mut buf: Vec<MaybeUninit<u8>> = vec![MaybeUninit::uninit(); len];
-        fill(&mut buf).map_err(|source| BusError::Encode {
+        msg::fill_payload(&mut buf, fill).map_err(|source| BusError::Encode {
             topic: self.topic.clone(),
             source,
         })?;
-        // SAFETY: `fill` succeeded, so it wrote every byte (see `FillFn`).
+        // SAFETY: `fill_payload` returned Ok: `fill` handed back the token of this very
+        // buffer, which only a writer that wrote each of its bytes makes.
         let bytes: Vec<u8> = buf.into_iter().map(|b| unsafe { b.assume_init() }).collect();
         let payload: Arc<[u8]> = bytes.into();
         let queues: Vec<Arc<Queue>> = lock(&self.state.subscribers).iter().map(|(_, q)| q.clone()).collect();

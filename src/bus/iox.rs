@@ -22,6 +22,8 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
+use crate::msg;
+
 use super::{BusError, FillFn, Frame, FrameData, FrameHeader, Publisher, Result, Subscriber, TopicConfig, Transport};
 
 /// Alignment of every payload: CDR aligns primitives to at most 8 bytes relative to the
@@ -221,12 +223,12 @@ impl Publisher for IoxPub {
             .loan_slice_uninit(len)
             .map_err(|e| err(&self.topic, format!("cannot loan {len} bytes: {e:?}")))?;
         *sample.user_header_mut() = header;
-        fill(sample.payload_mut()).map_err(|source| BusError::Encode {
+        msg::fill_payload(sample.payload_mut(), fill).map_err(|source| BusError::Encode {
             topic: self.topic.clone(),
             source,
         })?;
-        // SAFETY: `fill` succeeded, and every fill function writes each byte of the buffer
-        // (the CDR writer checks that it wrote exactly `len` bytes before returning Ok).
+        // SAFETY: `fill_payload` returned Ok: `fill` handed back the token of this very
+        // buffer, which only a writer that wrote each of its bytes makes.
         let sample = unsafe { sample.assume_init() };
         let reached = sample
             .send()

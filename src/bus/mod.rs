@@ -17,12 +17,11 @@ pub mod inproc;
 pub mod iox;
 pub mod zenoh;
 
-use std::mem::MaybeUninit;
 use std::time::Duration;
 
 use iceoryx2::prelude::ZeroCopySend;
 
-use crate::msg::{self, CdrDecode, Message, MsgError};
+use crate::msg::{self, CdrDecode, Message, MsgError, PayloadWriter, Written};
 
 /// What a frame carries.
 #[repr(u32)]
@@ -247,8 +246,9 @@ impl TopicConfig {
     }
 }
 
-/// Fills a loaned buffer: must write every byte of it.
-pub type FillFn<'f> = dyn FnMut(&mut [MaybeUninit<u8>]) -> std::result::Result<(), MsgError> + 'f;
+/// Fills a loaned buffer through a [`PayloadWriter`] and hands back its [`Written`] token,
+/// which only a writer that wrote every byte gives: the transport sends nothing else.
+pub type FillFn<'f> = dyn FnMut(PayloadWriter<'_>) -> std::result::Result<Written, MsgError> + 'f;
 
 /// Creates the two ends of topics.
 pub trait Transport {
@@ -269,7 +269,8 @@ pub trait Publisher {
     /// Topic name.
     fn topic(&self) -> &str;
     /// Loans a `len`-byte buffer (shared memory where the transport has it), lets `fill`
-    /// write it, and sends it with `header`. Waits while a lossless subscriber is full.
+    /// write it, and sends it with `header` once `fill` returned that buffer's token
+    /// ([`msg::fill_payload`] checks it). Waits while a lossless subscriber is full.
     /// Returns the number of subscribers reached.
     ///
     /// # Errors
@@ -452,7 +453,7 @@ impl Outbox {
     pub fn send<M: Message>(&mut self, msg: &M) -> Result<u64> {
         let stamp = msg.stamp_ns();
         let len = msg::encoded_len(msg);
-        self.send_encoded(stamp, len, &mut |buf| msg::encode_into(msg, buf).map(|_| ()))
+        self.send_encoded(stamp, len, &mut |out| msg::encode_into(msg, out))
     }
 
     /// Sends an already encoded payload (replay, bridges).
@@ -460,11 +461,9 @@ impl Outbox {
     /// # Errors
     /// As [`Outbox::send`].
     pub fn send_bytes(&mut self, stamp_ns: i64, payload: &[u8]) -> Result<u64> {
-        self.send_encoded(stamp_ns, payload.len(), &mut |buf| {
-            for (slot, b) in buf.iter_mut().zip(payload) {
-                slot.write(*b);
-            }
-            Ok(())
+        self.send_encoded(stamp_ns, payload.len(), &mut |mut out| {
+            out.put(payload)?;
+            out.finish()
         })
     }
 
@@ -509,7 +508,7 @@ impl Outbox {
         }
         self.watermark_ns = stamp_ns;
         let header = FrameHeader::control(FrameKind::Watermark, self.next_seq, stamp_ns);
-        let reached = self.publisher.send_with(header, 0, &mut |_| Ok(()))?;
+        let reached = self.publisher.send_with(header, 0, &mut |out| out.finish())?;
         self.check_reached(self.next_seq, reached)
     }
 
@@ -538,7 +537,7 @@ impl Outbox {
         }
         self.ended = true;
         let header = FrameHeader::control(FrameKind::EndOfStream, self.next_seq, i64::MAX);
-        let reached = self.publisher.send_with(header, 0, &mut |_| Ok(()))?;
+        let reached = self.publisher.send_with(header, 0, &mut |out| out.finish())?;
         self.check_reached(self.next_seq, reached)
     }
 }

@@ -35,6 +35,7 @@ use super::{
     BusError, FillFn, Frame, FrameData, FrameHeader, FrameKind, Publisher, Result, Subscriber, TopicConfig, Transport,
 };
 use crate::graph::ZenohDecl;
+use crate::msg;
 
 /// Default of [`ZenohDecl::link_timeout_s`].
 pub const DEFAULT_LINK_TIMEOUT: Duration = Duration::from_secs(60);
@@ -588,11 +589,13 @@ impl Publisher for ZenohPublisher {
         let mut buf: Vec<u8> = Vec::with_capacity(ENVELOPE + len);
         buf.resize(ENVELOPE, 0);
         let spare: &mut [MaybeUninit<u8>] = &mut buf.spare_capacity_mut()[..len];
-        fill(spare).map_err(|source| BusError::Encode {
+        msg::fill_payload(spare, fill).map_err(|source| BusError::Encode {
             topic: topic.clone(),
             source,
         })?;
-        // SAFETY: `fill` succeeded, so it wrote all `len` bytes after the envelope (see `FillFn`).
+        // SAFETY: `fill_payload` returned Ok: `fill` handed back the token of this very
+        // buffer, which only a writer that wrote each of its `len` bytes makes (after the
+        // envelope).
         unsafe { buf.set_len(ENVELOPE + len) };
         let kind = header.kind().unwrap_or(FrameKind::Data);
         let lossless = !self.latest_only || kind != FrameKind::Data;

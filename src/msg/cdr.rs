@@ -11,8 +11,8 @@
 //! primitives are handed back as slices into the received buffer when alignment allows.
 
 use std::borrow::Cow;
-use std::mem::MaybeUninit;
 
+use super::payload::{PayloadWriter, Written};
 use super::{MsgError, Result};
 
 /// Encapsulation header for plain CDR, little endian.
@@ -63,29 +63,23 @@ impl CdrSink for CdrSize {
 }
 
 /// Writes CDR into a buffer of exactly the size [`CdrSize`] computed. The buffer may be
-/// uninitialised: every byte, padding included, is written exactly once.
+/// uninitialised: every byte, padding included, is written exactly once, and
+/// [`finish`](Self::finish) hands back the buffer's [`Written`] token.
 #[derive(Debug)]
 pub struct CdrWriter<'a> {
-    buf: &'a mut [MaybeUninit<u8>],
+    out: PayloadWriter<'a>,
+    /// Bytes the encoder produced, header included (past the buffer's end on a size mismatch).
     pos: usize,
 }
 
 impl<'a> CdrWriter<'a> {
-    /// Starts a payload in `buf` and writes the encapsulation header.
+    /// Starts a payload in `out` and writes the encapsulation header.
     ///
     /// # Errors
     /// [`MsgError::BufferSize`] when the buffer cannot even hold the header.
-    pub fn new(buf: &'a mut [MaybeUninit<u8>]) -> Result<Self> {
-        if buf.len() < HEADER_LEN {
-            return Err(MsgError::BufferSize {
-                expected: HEADER_LEN,
-                actual: buf.len(),
-            });
-        }
-        for (slot, b) in buf.iter_mut().zip(CDR_LE_HEADER) {
-            slot.write(b);
-        }
-        Ok(Self { buf, pos: HEADER_LEN })
+    pub fn new(mut out: PayloadWriter<'a>) -> Result<Self> {
+        out.put(&CDR_LE_HEADER)?;
+        Ok(Self { out, pos: HEADER_LEN })
     }
 
     /// Bytes written so far, header included.
@@ -96,16 +90,16 @@ impl<'a> CdrWriter<'a> {
     /// Checks that the whole buffer was written.
     ///
     /// # Errors
-    /// [`MsgError::BufferSize`] when the encoder wrote fewer bytes than the buffer holds.
-    pub fn finish(self) -> Result<usize> {
-        if self.pos == self.buf.len() {
-            Ok(self.pos)
-        } else {
-            Err(MsgError::BufferSize {
-                expected: self.buf.len(),
+    /// [`MsgError::BufferSize`] when the encoder wrote fewer or more bytes than the buffer
+    /// holds.
+    pub fn finish(self) -> Result<Written> {
+        if self.pos != self.out.len() {
+            return Err(MsgError::BufferSize {
+                expected: self.out.len(),
                 actual: self.pos,
-            })
+            });
         }
+        self.out.finish()
     }
 }
 
@@ -114,22 +108,13 @@ impl CdrSink for CdrWriter<'_> {
         self.pos - HEADER_LEN
     }
     fn pad(&mut self, count: usize) {
-        let end = (self.pos + count).min(self.buf.len());
-        for slot in &mut self.buf[self.pos..end] {
-            slot.write(0);
-        }
+        // The size pass guarantees the room; a mismatch is caught by `finish`.
+        let _fits = self.out.zeros(count.min(self.out.remaining()));
         self.pos += count;
     }
     fn bytes(&mut self, data: &[u8]) {
-        // The size pass guarantees the room; a mismatch is caught by `finish`, never UB.
-        let room = self.buf.len().saturating_sub(self.pos);
-        let n = data.len().min(room);
-        let dst = &mut self.buf[self.pos..self.pos + n];
-        // SAFETY: `MaybeUninit<u8>` has the layout of `u8`; `dst` and `data[..n]` have the
-        // same length and cannot overlap (one is borrowed mutably, the other shared).
-        unsafe {
-            std::ptr::copy_nonoverlapping(data.as_ptr(), dst.as_mut_ptr().cast::<u8>(), n);
-        }
+        let n = data.len().min(self.out.remaining());
+        let _fits = self.out.put(&data[..n]);
         self.pos += data.len();
     }
 }

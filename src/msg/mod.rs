@@ -10,15 +10,15 @@
 
 mod cdr;
 mod gpr;
+mod payload;
 mod registry;
 mod std_types;
 
 pub use cdr::{CDR_LE_HEADER, CdrDecode, CdrEncode, CdrReader, CdrSink, CdrSize, CdrWriter, Pod, RosField};
 pub use gpr::*;
+pub use payload::{PayloadWriter, Written, fill_payload};
 pub use registry::{MessageType, decode_to_json, message_type, message_types};
 pub use std_types::*;
-
-use std::mem::MaybeUninit;
 
 /// Errors of encoding and decoding.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -63,6 +63,9 @@ pub enum MsgError {
         /// Bytes available.
         actual: usize,
     },
+    /// A payload fill step returned the [`Written`] token of another buffer than its own.
+    #[error("the fill step returned the token of another buffer")]
+    ForeignToken,
 }
 
 /// Result of message encoding and decoding.
@@ -110,12 +113,12 @@ pub fn encoded_len<M: CdrEncode + ?Sized>(msg: &M) -> usize {
     size.total_len()
 }
 
-/// Encodes `msg` into `buf`, which must be exactly [`encoded_len`] bytes long.
+/// Encodes `msg` into `out`, whose buffer must be exactly [`encoded_len`] bytes long.
 ///
 /// # Errors
-/// [`MsgError::BufferSize`] when `buf` has the wrong size.
-pub fn encode_into<M: CdrEncode + ?Sized>(msg: &M, buf: &mut [MaybeUninit<u8>]) -> Result<usize> {
-    let mut w = CdrWriter::new(buf)?;
+/// [`MsgError::BufferSize`] when the buffer has the wrong size.
+pub fn encode_into<M: CdrEncode + ?Sized>(msg: &M, out: PayloadWriter<'_>) -> Result<Written> {
+    let mut w = CdrWriter::new(out)?;
     msg.encode(&mut w);
     w.finish()
 }
@@ -124,10 +127,10 @@ pub fn encode_into<M: CdrEncode + ?Sized>(msg: &M, buf: &mut [MaybeUninit<u8>]) 
 pub fn encode<M: CdrEncode + ?Sized>(msg: &M) -> Vec<u8> {
     let len = encoded_len(msg);
     let mut buf = Vec::with_capacity(len);
-    let written = encode_into(msg, &mut buf.spare_capacity_mut()[..len]);
-    debug_assert_eq!(written, Ok(len));
-    // SAFETY: `encode_into` succeeded only if it wrote all `len` bytes.
-    if written.is_ok() {
+    let filled = fill_payload(&mut buf.spare_capacity_mut()[..len], |out| encode_into(msg, out));
+    debug_assert_eq!(filled, Ok(()));
+    if filled.is_ok() {
+        // SAFETY: `fill_payload` returned Ok, so all `len` bytes were written.
         unsafe { buf.set_len(len) };
     }
     buf

@@ -94,9 +94,9 @@ impl Endpoint for BusEndpoint {
     fn send(&mut self, seq: u64, len: usize, seed: u8) -> Result<()> {
         let reached = self
             .publisher
-            .send_with(FrameHeader::data(seq, 0), len, &mut |buf| {
-                payload::fill_uninit(buf, seed);
-                Ok(())
+            .send_with(FrameHeader::data(seq, 0), len, &mut |mut out| {
+                payload::fill_writer(&mut out, seed);
+                out.finish()
             })
             .with_context(|| format!("seq {seq}: send"))?;
         ensure!(

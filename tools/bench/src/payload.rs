@@ -6,17 +6,16 @@
 //! [`DEFAULT_TOUCH_STRIDE`] makes the receiver pull every cache line of the message without
 //! turning the benchmark into a checksum benchmark.
 
-use std::mem::MaybeUninit;
 use std::num::NonZeroUsize;
+
+use gprflow::msg::PayloadWriter;
 
 /// By default the receiver reads one byte in 64: one per cache line.
 pub const DEFAULT_TOUCH_STRIDE: NonZeroUsize = NonZeroUsize::new(64).expect("64 is not zero");
 
-/// Writes the pattern with `seed` into every byte of `buf` (loaned shared memory).
-pub fn fill_uninit(buf: &mut [MaybeUninit<u8>], seed: u8) {
-    for (i, slot) in buf.iter_mut().enumerate() {
-        slot.write(seed.wrapping_add(i as u8));
-    }
+/// Writes the pattern with `seed` into every byte left in `out` (loaned shared memory).
+pub fn fill_writer(out: &mut PayloadWriter<'_>, seed: u8) {
+    out.fill_rest(|i| seed.wrapping_add(i as u8));
 }
 
 /// Writes the pattern with `seed` into every byte of `buf`.
