@@ -1229,9 +1229,9 @@ fn a_cmu_gpr_folder_ingests_as_the_recording_it_was_written_with() {
     }
 }
 
-/// The real radar files of `../shared/data/real-gpr`.
+/// The real radar files committed in `recordings/real-gpr`.
 fn real_gpr(file: &str) -> PathBuf {
-    let dir = repo().join("../shared/data/real-gpr");
+    let dir = repo().join("recordings/real-gpr");
     assert!(
         dir.is_dir(),
         "{} is missing: the tests read the real radar files there",

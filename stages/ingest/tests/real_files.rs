@@ -1,5 +1,5 @@
-//! The readers on files written by real instruments (GPRPy's example data in
-//! `shared/data/real-gpr`). Header values are those the data README lists; sample values were
+//! The readers on files written by real instruments (GPRPy's example data, committed in
+//! `recordings/real-gpr`). Header values are those the data README lists; sample values were
 //! read independently with Python's `struct`, the snippet beside each test.
 
 use std::path::{Path, PathBuf};
@@ -13,11 +13,10 @@ use gprflow_ingest::radargram::Format;
 const TOLERANCE: f64 = 1e-6;
 
 fn data_dir() -> PathBuf {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/real-gpr");
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/real-gpr");
     assert!(
         dir.is_dir(),
-        "the real GPR files are missing: expected the folder {} (the repository is cloned beside \
-         shared/, which holds data/real-gpr)",
+        "the real GPR files are missing: expected the folder {}",
         dir.display()
     );
     dir

@@ -225,7 +225,7 @@ enum Command {
     ///
     /// Examples:
     ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
-    ///   gprflow radargram ../shared/data/real-gpr/GSSI_FILE____032.DZT -o dzt.png
+    ///   gprflow radargram recordings/real-gpr/GSSI_FILE____032.DZT -o dzt.png
     ///   gprflow radargram run.mcap --topic /filter/submap --submap 120 -o submap.png
     ///   gprflow radargram slam.mcap --topic /filter/submap --features /lines/observation -o pipe.png
     Radargram {
