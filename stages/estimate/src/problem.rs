@@ -1,7 +1,7 @@
-//! The synthetic benchmark problem exported by the GTSAM peer
-//! (`shared/peers/gtsam/gtsam_bench.py --export FILE`) and the graph it describes.
+//! The synthetic benchmark problem (`tools/peer/gtsam_problem.py N -o FILE`, which GTSAM
+//! solves in `tools/peer/gtsam_solve.py`) and the graph it describes.
 //!
-//! Format, one record per line, whitespace separated (see the peer's README):
+//! Format, one record per line, whitespace separated:
 //! `PARAMS N imu_per_state imu_dt g acc_nd gyr_nd acc_rw gyr_rw odo_sig[6] lc_sig[6]`,
 //! `GT i x y z qx qy qz qw vx vy vz`, `ODO i-1 i x y z qx qy qz qw`, `IMU i ax ay az gx gy gz`,
 //! `LC j i x y z qx qy qz qw`, `LINEMAP k rho theta rho0 theta0`, `LINE i k z`.

@@ -2,8 +2,8 @@
 //! against GTSAM 4.3's Levenberg-Marquardt on the same file.
 //!
 //! The fixture is regenerated (never edited) by `tools/peer/gtsam_check.sh`, which installs
-//! GTSAM into `.venv-gtsam`, exports the problem with `shared/peers/gtsam/gtsam_bench.py 300
-//! --lap 100` and solves it with `tools/peer/gtsam_solve.py`.
+//! GTSAM into `.venv-gtsam`, makes the problem with `tools/peer/gtsam_problem.py 300 --lap 100
+//! --lines` and solves it with `tools/peer/gtsam_solve.py`.
 
 use std::path::Path;
 

@@ -300,7 +300,7 @@ enum BenchCommand {
     ///
     /// Example: gprflow bench estimate problem.txt --json
     Estimate {
-        /// Problem file (`gtsam_bench.py --export`).
+        /// Problem file (`tools/peer/gtsam_problem.py N -o FILE`).
         problem: PathBuf,
         /// Line factors: off, known (true map lines) or estimated (lines are variables).
         #[arg(long, default_value = "off", value_parser = ["off", "known", "estimated"])]
