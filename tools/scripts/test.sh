@@ -17,7 +17,7 @@ cargo clippy --workspace --all-targets -- -D warnings
 cargo build --workspace --bins
 cargo nextest run --workspace --no-fail-fast
 # the compile-fail examples: safe code cannot send an unwritten payload buffer (msg::payload)
-cargo test -p gprflow --doc --quiet
+cargo test -p gprflow-msg --doc --quiet
 # peer check of the estimation library: GTSAM 4.3 (installed into .venv-gtsam) re-solves the
 # committed problem and must still give the figures our test (peer_gtsam, run above) compares
 # against

@@ -4,8 +4,8 @@
 
 use std::borrow::Cow;
 
-use gprflow::msg::{Message, Samples, Submap, Trace};
-use gprflow::stage::{
+use gprflow_msg::{Message, Samples, Submap, Trace};
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 

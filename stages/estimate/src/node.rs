@@ -1,11 +1,11 @@
 //! The `estimate` stage: converts messages to [`OnlineEstimator`] calls and estimates back to
 //! messages. Inputs arrive merged in stamp order (the runtime's watermark merge).
 
-use gprflow::msg::{
+use gprflow_msg::{
     Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Point, Pose, PoseStamped,
     PoseWithCovariance, Quaternion, Registration, StateEstimate, Trajectory, Vector3 as Vector3Msg, WheelOdometry,
 };
-use gprflow::stage::{
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 use nalgebra::{DMatrix, Vector2, Vector3};
@@ -273,7 +273,7 @@ impl EstimateStage {
             state_index: s.index,
             world_from_body: PoseWithCovariance {
                 pose: pose_msg(&s.pose),
-                covariance: gprflow::msg::Covariance6(cov),
+                covariance: gprflow_msg::Covariance6(cov),
             },
             velocity_in_world_mps: vec_msg(&s.velocity_mps),
             accel_bias: vec_msg(&s.bias.acc_mps2),

@@ -5,11 +5,11 @@
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
-use gprflow::msg::{
+use gprflow_msg::{
     Header, Imu, Message, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode, encode,
 };
-use gprflow::record::{Pace, Player, Recording};
-use gprflow::stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
+use gprflow_record::{Pace, Player, Recording};
+use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::cmu::CmuSequence;
 use crate::radargram::{Format, Radargram, RawSamples};
@@ -600,7 +600,7 @@ mod tests {
             .iter()
             .filter(|m| m.0 == Port::Gpr)
             .map(|m| {
-                let t: Trace = gprflow::msg::decode(&m.2).expect("decodes");
+                let t: Trace = gprflow_msg::decode(&m.2).expect("decodes");
                 (m.1, t.samples_i16[0])
             })
             .collect();

@@ -4,8 +4,8 @@
 
 use std::borrow::Cow;
 
-use gprflow::msg::{Header, Message, Sweep, WheelOdometry};
-use gprflow::stage::{
+use gprflow_msg::{Header, Message, Sweep, WheelOdometry};
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 

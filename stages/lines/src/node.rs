@@ -20,11 +20,11 @@
 
 use std::collections::VecDeque;
 
-use gprflow::msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
-use gprflow::stage::{
+use gprflow_msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
+use gprflow_register::candidates::{Planar, Track, wrap};
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
-use gprflow_register::candidates::{Planar, Track, wrap};
 
 use crate::associate::{AssociationParams, Associator, GroundPoint};
 use crate::detect::{DetectParams, Image, detect};
@@ -150,7 +150,7 @@ pub struct LinesStage {
 const MAX_TRACK_GAP_NS: i64 = 1_000_000_000;
 
 /// The planar pose of a pose message.
-fn planar(p: &gprflow::msg::Pose) -> Planar {
+fn planar(p: &gprflow_msg::Pose) -> Planar {
     let q = &p.orientation;
     Planar::from_quaternion(p.position.x, p.position.y, [q.x, q.y, q.z, q.w])
 }

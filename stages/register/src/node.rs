@@ -20,10 +20,10 @@
 use std::collections::VecDeque;
 use std::path::PathBuf;
 
-use gprflow::msg::{
+use gprflow_msg::{
     Covariance6, Header, Message, Point, Pose, PoseStamped, Quaternion, Registration, StateEstimate, Submap, Time,
 };
-use gprflow::stage::{
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 

@@ -1,12 +1,12 @@
 //! The `submap` stage: traces, wheel odometry and IMU in (merged in stamp order by the
-//! runtime), [`Submap`](gprflow::msg::Submap) messages out.
+//! runtime), [`Submap`](gprflow_msg::Submap) messages out.
 
 use std::borrow::Cow;
 
-use gprflow::msg::{
+use gprflow_msg::{
     Header, Imu, Message, Point, Pose, Quaternion, Samples, Submap as SubmapMsg, Time, Trace, WheelOdometry,
 };
-use gprflow::stage::{
+use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 

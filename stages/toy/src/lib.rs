@@ -4,8 +4,8 @@
 
 use std::borrow::Cow;
 
-use gprflow::msg::{Header, Message, Samples, Trace};
-use gprflow::stage::{
+use gprflow_msg::{Header, Message, Samples, Trace};
+use gprflow_stage::{
     Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError,
 };
 

@@ -4,8 +4,8 @@
 
 use std::process::ExitCode;
 
-use gprflow::bus::iox::IoxTransport;
-use gprflow::stage::{NodeSpec, bind_signals, run_node};
+use gprflow_bus::iox::IoxTransport;
+use gprflow_stage::{NodeSpec, bind_signals, run_node};
 use gprflow_stage_toy::ToyGain;
 
 fn run(spec_path: &str) -> Result<(), String> {
