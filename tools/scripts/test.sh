@@ -15,6 +15,8 @@ cargo fmt --all -- --check
 cargo clippy --workspace --all-targets -- -D warnings
 # end-to-end tests also run the workspace's other binaries (a user's exec stage)
 cargo build --workspace --bins
+# the crate layers (no upward dependency, zenoh only where the launcher is) and no module circles
+python3 tools/scripts/check-layers.py
 cargo nextest run --workspace --no-fail-fast
 # the compile-fail examples: safe code cannot send an unwritten payload buffer (msg::payload)
 cargo test -p gprflow-msg --doc --quiet

@@ -11,6 +11,7 @@
 //! folder layout).
 
 pub mod impulse;
+mod load;
 pub mod lgpr;
 pub mod motion;
 pub mod output;

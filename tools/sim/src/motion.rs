@@ -621,6 +621,20 @@ pub fn tightest_radius_m(run: &Run) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// Whether a run's wander fits its path: the offset path must not fold over itself on the
+/// tightest bend (the deviation's peak at most half the bend radius). The error says why.
+pub(crate) fn check_wander_fits(run: &Run, wander: &Wander) -> Result<(), String> {
+    let reach = WANDER_PEAK_PER_SIGMA * wander.sigma_m;
+    let radius = tightest_radius_m(run);
+    if reach >= 0.5 * radius {
+        return Err(format!(
+            "too large for the tightest bend of the path ({radius:.2} m radius): the deviation reaches {reach:.2} m, \
+             at most half the radius is allowed"
+        ));
+    }
+    Ok(())
+}
+
 /// Wraps an angle to (-pi, pi].
 pub fn wrap_angle(a: f64) -> f64 {
     let w = (a + PI).rem_euclid(TAU) - PI;
@@ -868,120 +882,6 @@ fn build(trajectory: &Trajectory, accel: f64, plan: &mut Planner) {
                 });
             }
             plan.drive(pieces, false, speed_kmh / 3.6, accel);
-        }
-    }
-}
-
-/// Checks a trajectory's numbers; the error names the field.
-pub(crate) fn validate(t: &Trajectory) -> Result<(), (String, String)> {
-    let positive = |key: &str, v: f64| {
-        if v.is_finite() && v > 0.0 {
-            Ok(())
-        } else {
-            Err((key.to_owned(), format!("must be finite and > 0, got {v}")))
-        }
-    };
-    match t {
-        Trajectory::Waypoints {
-            points,
-            speed_mps,
-            corner_radius_m,
-            ..
-        } => {
-            positive("speed_mps", *speed_mps)?;
-            positive("corner_radius_m", *corner_radius_m)?;
-            if points.len() < 2 {
-                return Err(("points".into(), "at least two waypoints".into()));
-            }
-            if points.windows(2).any(|w| w[0] == w[1]) {
-                return Err(("points".into(), "two consecutive waypoints are equal".into()));
-            }
-            Ok(())
-        }
-        Trajectory::ForwardBackward {
-            length_m,
-            speed_mps,
-            repeats,
-            ..
-        } => {
-            positive("length_m", *length_m)?;
-            positive("speed_mps", *speed_mps)?;
-            if *repeats == 0 {
-                return Err(("repeats".into(), "at least 1".into()));
-            }
-            Ok(())
-        }
-        Trajectory::Loop {
-            size_m,
-            laps,
-            speed_mps,
-            corner_radius_m,
-            ..
-        } => {
-            positive("size_m.0", size_m[0])?;
-            positive("size_m.1", size_m[1])?;
-            positive("speed_mps", *speed_mps)?;
-            positive("corner_radius_m", *corner_radius_m)?;
-            if *laps == 0 {
-                return Err(("laps".into(), "at least 1".into()));
-            }
-            Ok(())
-        }
-        Trajectory::Lawnmower {
-            length_m,
-            rows,
-            spacing_m,
-            speed_mps,
-            ..
-        } => {
-            positive("length_m", *length_m)?;
-            positive("spacing_m", *spacing_m)?;
-            positive("speed_mps", *speed_mps)?;
-            if *rows == 0 {
-                return Err(("rows".into(), "at least 1".into()));
-            }
-            Ok(())
-        }
-        Trajectory::LongDrive {
-            length_m,
-            meander_m,
-            meander_wavelength_m,
-            speed_mps,
-            ..
-        } => {
-            positive("length_m", *length_m)?;
-            positive("speed_mps", *speed_mps)?;
-            positive("meander_wavelength_m", *meander_wavelength_m)?;
-            if !(meander_m.is_finite() && *meander_m >= 0.0 && *meander_m < meander_wavelength_m / 4.0) {
-                return Err((
-                    "meander_m".into(),
-                    format!("must be in [0, meander_wavelength_m / 4), got {meander_m}"),
-                ));
-            }
-            Ok(())
-        }
-        Trajectory::Highway {
-            lap_length_m,
-            bend_radius_m,
-            speed_kmh,
-            lateral_offset_m,
-            laps,
-        } => {
-            positive("speed_kmh", *speed_kmh)?;
-            positive("bend_radius_m", *bend_radius_m)?;
-            if lap_length_m.is_nan() || *lap_length_m <= TAU * bend_radius_m {
-                return Err((
-                    "lap_length_m".into(),
-                    "must exceed the two bends (2 pi bend_radius_m)".into(),
-                ));
-            }
-            if lateral_offset_m.is_nan() || lateral_offset_m.abs() >= *bend_radius_m {
-                return Err(("lateral_offset_m".into(), "must be smaller than the bend radius".into()));
-            }
-            if *laps == 0 {
-                return Err(("laps".into(), "at least 1".into()));
-            }
-            Ok(())
         }
     }
 }

@@ -6,7 +6,7 @@
 //! depths are positive downwards, angles in scenario files are degrees (`_deg`), times
 //! seconds unless a name says otherwise. World coordinates: x east, y north, z up.
 
-use std::path::Path;
+use std::f64::consts::TAU;
 
 use schemars::JsonSchema;
 use serde::Deserialize;
@@ -722,35 +722,6 @@ impl Default for GpsConfig {
 }
 
 impl Scenario {
-    /// Reads and checks a scenario file.
-    ///
-    /// # Errors
-    /// [`SimError::Read`], [`SimError::Scenario`] with file, line, column and key path, or
-    /// [`SimError::Invalid`] for values out of range.
-    pub fn load(path: &Path) -> Result<Self, SimError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SimError::Read {
-            path: path.to_owned(),
-            source,
-        })?;
-        Self::parse(&text, path)
-    }
-
-    /// Parses scenario text; `file` names it in errors.
-    ///
-    /// # Errors
-    /// As [`load`](Self::load).
-    pub fn parse(text: &str, file: &Path) -> Result<Self, SimError> {
-        let scenario: Self = serde_saphyr::from_str(text).map_err(|e| {
-            let (at, message) = gprflow::graph::locate_yaml_error(file, text, &e);
-            SimError::Scenario { at, message }
-        })?;
-        scenario.validate().map_err(|(key, message)| SimError::Invalid {
-            at: gprflow::graph::locate_yaml_key(file, text, &key),
-            message,
-        })?;
-        Ok(scenario)
-    }
-
     /// The run called `name`, or the first.
     ///
     /// # Errors
@@ -771,7 +742,8 @@ impl Scenario {
         schemars::schema_for!(Scenario)
     }
 
-    fn validate(&self) -> Result<(), (String, String)> {
+    /// Checks the numbers of every field (the path's feasibility is checked by [`Scenario::parse`]).
+    pub(crate) fn validate(&self) -> Result<(), (String, String)> {
         fn positive(key: &str, v: f64) -> Result<(), (String, String)> {
             if v.is_finite() && v > 0.0 {
                 Ok(())
@@ -891,7 +863,7 @@ impl Scenario {
             }
             non_negative(&format!("runs.{i}.start_pause_s"), run.start_pause_s)?;
             non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
-            crate::motion::validate(&run.trajectory).map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
+            run.trajectory.validate().map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
             if let Some(c) = &run.ground_contact {
                 let key = |f: &str| format!("runs.{i}.ground_contact.{f}");
                 non_negative(&key("ringing_sigma"), c.ringing_sigma)?;
@@ -905,20 +877,124 @@ impl Scenario {
                 non_negative(&key("sigma_m"), w.sigma_m)?;
                 positive(&key("wavelength_m"), w.wavelength_m)?;
                 positive(&key("ramp_m"), w.ramp_m)?;
-                // the offset path must not fold over itself on the tightest bend
-                let reach = crate::motion::WANDER_PEAK_PER_SIGMA * w.sigma_m;
-                let radius = crate::motion::tightest_radius_m(run);
-                if reach >= 0.5 * radius {
-                    return Err((
-                        key("sigma_m"),
-                        format!(
-                            "too large for the tightest bend of the path ({radius:.2} m radius): the deviation reaches \
-                             {reach:.2} m, at most half the radius is allowed"
-                        ),
-                    ));
-                }
             }
         }
         Ok(())
+    }
+}
+
+impl Trajectory {
+    /// Checks the trajectory's numbers; the error names the field.
+    fn validate(&self) -> Result<(), (String, String)> {
+        let positive = |key: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((key.to_owned(), format!("must be finite and > 0, got {v}")))
+            }
+        };
+        match self {
+            Trajectory::Waypoints {
+                points,
+                speed_mps,
+                corner_radius_m,
+                ..
+            } => {
+                positive("speed_mps", *speed_mps)?;
+                positive("corner_radius_m", *corner_radius_m)?;
+                if points.len() < 2 {
+                    return Err(("points".into(), "at least two waypoints".into()));
+                }
+                if points.windows(2).any(|w| w[0] == w[1]) {
+                    return Err(("points".into(), "two consecutive waypoints are equal".into()));
+                }
+                Ok(())
+            }
+            Trajectory::ForwardBackward {
+                length_m,
+                speed_mps,
+                repeats,
+                ..
+            } => {
+                positive("length_m", *length_m)?;
+                positive("speed_mps", *speed_mps)?;
+                if *repeats == 0 {
+                    return Err(("repeats".into(), "at least 1".into()));
+                }
+                Ok(())
+            }
+            Trajectory::Loop {
+                size_m,
+                laps,
+                speed_mps,
+                corner_radius_m,
+                ..
+            } => {
+                positive("size_m.0", size_m[0])?;
+                positive("size_m.1", size_m[1])?;
+                positive("speed_mps", *speed_mps)?;
+                positive("corner_radius_m", *corner_radius_m)?;
+                if *laps == 0 {
+                    return Err(("laps".into(), "at least 1".into()));
+                }
+                Ok(())
+            }
+            Trajectory::Lawnmower {
+                length_m,
+                rows,
+                spacing_m,
+                speed_mps,
+                ..
+            } => {
+                positive("length_m", *length_m)?;
+                positive("spacing_m", *spacing_m)?;
+                positive("speed_mps", *speed_mps)?;
+                if *rows == 0 {
+                    return Err(("rows".into(), "at least 1".into()));
+                }
+                Ok(())
+            }
+            Trajectory::LongDrive {
+                length_m,
+                meander_m,
+                meander_wavelength_m,
+                speed_mps,
+                ..
+            } => {
+                positive("length_m", *length_m)?;
+                positive("speed_mps", *speed_mps)?;
+                positive("meander_wavelength_m", *meander_wavelength_m)?;
+                if !(meander_m.is_finite() && *meander_m >= 0.0 && *meander_m < meander_wavelength_m / 4.0) {
+                    return Err((
+                        "meander_m".into(),
+                        format!("must be in [0, meander_wavelength_m / 4), got {meander_m}"),
+                    ));
+                }
+                Ok(())
+            }
+            Trajectory::Highway {
+                lap_length_m,
+                bend_radius_m,
+                speed_kmh,
+                lateral_offset_m,
+                laps,
+            } => {
+                positive("speed_kmh", *speed_kmh)?;
+                positive("bend_radius_m", *bend_radius_m)?;
+                if lap_length_m.is_nan() || *lap_length_m <= TAU * bend_radius_m {
+                    return Err((
+                        "lap_length_m".into(),
+                        "must exceed the two bends (2 pi bend_radius_m)".into(),
+                    ));
+                }
+                if lateral_offset_m.is_nan() || lateral_offset_m.abs() >= *bend_radius_m {
+                    return Err(("lateral_offset_m".into(), "must be smaller than the bend radius".into()));
+                }
+                if *laps == 0 {
+                    return Err(("laps".into(), "at least 1".into()));
+                }
+                Ok(())
+            }
+        }
     }
 }
