@@ -11,8 +11,8 @@
 //! folder layout).
 
 pub mod impulse;
-mod load;
 pub mod lgpr;
+mod load;
 pub mod motion;
 pub mod output;
 pub mod reference;

@@ -863,7 +863,9 @@ impl Scenario {
             }
             non_negative(&format!("runs.{i}.start_pause_s"), run.start_pause_s)?;
             non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
-            run.trajectory.validate().map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
+            run.trajectory
+                .validate()
+                .map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
             if let Some(c) = &run.ground_contact {
                 let key = |f: &str| format!("runs.{i}.ground_contact.{f}");
                 non_negative(&key("ringing_sigma"), c.ringing_sigma)?;
