@@ -20,8 +20,8 @@
 
 use std::collections::VecDeque;
 
+use gprflow_geometry::{Planar, Track, wrap_angle};
 use gprflow_msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
-use gprflow_register::candidates::{Planar, Track, wrap};
 use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
@@ -214,7 +214,7 @@ impl LinesStage {
                 continue;
             }
             // the apex on the ground: straight between the submap's end poses, plus the antenna
-            let yaw = yaw0 + frac * wrap(yaw1 - yaw0);
+            let yaw = yaw0 + frac * wrap_angle(yaw1 - yaw0);
             let a = self.params.antenna_forward_m;
             let candidate = Pending {
                 along_distance_m: along,
@@ -508,7 +508,7 @@ mod tests {
 
     #[test]
     fn wrap_keeps_angles_in_range() {
-        assert!((wrap(3.0 * std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
-        assert!((wrap(-0.5) + 0.5).abs() < 1e-12);
+        assert!((wrap_angle(3.0 * std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
+        assert!((wrap_angle(-0.5) + 0.5).abs() < 1e-12);
     }
 }

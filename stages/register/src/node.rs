@@ -27,7 +27,9 @@ use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 
-use crate::candidates::{Anchor, CandidateGates, Placed, Planar, Track, candidates};
+use gprflow_geometry::{Planar, Track};
+
+use crate::candidates::{Anchor, CandidateGates, Placed, candidates};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
 use crate::learned::{Features, Head, Model};
 use crate::{Error, Result, positive, stretch};

@@ -2,7 +2,9 @@
 
 use std::collections::VecDeque;
 
-use crate::odometry::{PlanarOdometry, PlanarPose};
+use gprflow_geometry::Planar;
+
+use crate::odometry::PlanarOdometry;
 use crate::{Error, Result, SubmapParams, rubber_band, saliency};
 
 /// One submap (see the crate docs for the conventions).
@@ -25,9 +27,9 @@ pub struct Submap {
     /// Columns.
     pub cols: usize,
     /// Odometry pose at the oldest trace.
-    pub start_pose: PlanarPose,
+    pub start_pose: Planar,
     /// Odometry pose at the newest trace.
-    pub end_pose: PlanarPose,
+    pub end_pose: Planar,
     /// [`saliency`] of the pixels.
     pub saliency: f32,
     /// The validity rule held.
@@ -74,8 +76,8 @@ struct Bin {
     segment: u64,
     /// Direction of the segment: +1 forward, -1 backward, 0 not yet moving.
     direction: i8,
-    first_pose: PlanarPose,
-    last_pose: PlanarPose,
+    first_pose: Planar,
+    last_pose: Planar,
 }
 
 /// A wheel sample with the travel and pose at it.
@@ -86,7 +88,7 @@ struct WheelSample {
     travel_m: f64,
     segment: u64,
     direction: i8,
-    pose: PlanarPose,
+    pose: Planar,
 }
 
 /// Builds submaps from traces, wheel distances and IMU rates delivered in stamp order.
@@ -511,7 +513,7 @@ fn interpolate(a: Option<&WheelSample>, b: &WheelSample, stamp_ns: i64) -> Wheel
         travel_m: lerp(a.travel_m, b.travel_m),
         segment: b.segment,
         direction: b.direction,
-        pose: PlanarPose {
+        pose: Planar {
             x_m: lerp(a.pose.x_m, b.pose.x_m),
             y_m: lerp(a.pose.y_m, b.pose.y_m),
             yaw_rad: lerp(a.pose.yaw_rad, b.pose.yaw_rad),

@@ -32,7 +32,7 @@ mod odometry;
 
 pub use builder::{Submap, SubmapBuilder, SubmapStats};
 pub use gprflow_dsp::image::saliency;
-pub use odometry::{PlanarOdometry, PlanarPose};
+pub use odometry::PlanarOdometry;
 
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]

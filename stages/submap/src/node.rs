@@ -10,7 +10,9 @@ use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 
-use crate::{Error, PlanarPose, Submap, SubmapBuilder, SubmapParams};
+use gprflow_geometry::Planar;
+
+use crate::{Error, Submap, SubmapBuilder, SubmapParams};
 
 /// The submap stage.
 #[derive(Debug)]
@@ -22,7 +24,7 @@ pub struct SubmapStage {
     scratch: Vec<f32>,
 }
 
-fn pose_msg(p: &PlanarPose) -> Pose {
+fn pose_msg(p: &Planar) -> Pose {
     let half = 0.5 * p.yaw_rad;
     Pose {
         position: Point {

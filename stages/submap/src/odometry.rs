@@ -1,23 +1,13 @@
 //! Planar dead reckoning from the wheel encoder and the z gyro.
 
-/// A planar pose in the odometry frame: position in metres, heading in radians (x forward
-/// at heading 0, counter-clockwise positive).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct PlanarPose {
-    /// x, m.
-    pub x_m: f64,
-    /// y, m.
-    pub y_m: f64,
-    /// Heading, rad.
-    pub yaw_rad: f64,
-}
+use gprflow_geometry::Planar;
 
 /// Dead reckoning: the heading integrates the z gyro rate (trapezoid rule between IMU
 /// samples), the position advances by each wheel-distance increment along the heading at
 /// that moment. The pose starts at the origin.
 #[derive(Debug, Clone, Default)]
 pub struct PlanarOdometry {
-    pose: PlanarPose,
+    pose: Planar,
     last_gyro: Option<(i64, f64)>,
     last_distance_m: Option<f64>,
 }
@@ -52,7 +42,7 @@ impl PlanarOdometry {
     }
 
     /// The current pose.
-    pub fn pose(&self) -> PlanarPose {
+    pub fn pose(&self) -> Planar {
         self.pose
     }
 }

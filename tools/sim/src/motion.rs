@@ -10,6 +10,8 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 use nalgebra::{Rotation3, UnitQuaternion, Vector2, Vector3};
 
+use gprflow::geometry::wrap_angle;
+
 use crate::rng::Rng;
 use crate::scenario::{Run, Trajectory, Vibration, Wander};
 
@@ -633,12 +635,6 @@ pub(crate) fn check_wander_fits(run: &Run, wander: &Wander) -> Result<(), String
         ));
     }
     Ok(())
-}
-
-/// Wraps an angle to (-pi, pi].
-pub fn wrap_angle(a: f64) -> f64 {
-    let w = (a + PI).rem_euclid(TAU) - PI;
-    if w <= -PI { w + TAU } else { w }
 }
 
 fn heading_of(d: V2) -> f64 {
