@@ -323,6 +323,8 @@ pub struct Frame {
 enum FrameData {
     Iox(iox::IoxSample),
     Shared(std::sync::Arc<[u8]>),
+    /// Copied out of the zenoh transport's buffers.
+    #[cfg_attr(not(feature = "zenoh"), allow(dead_code))]
     Owned(Vec<u8>),
     Empty,
 }

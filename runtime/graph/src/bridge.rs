@@ -117,8 +117,8 @@ pub struct RouteReport {
 /// Bad parameters, a zenoh session that cannot open, or the first route that failed, named.
 pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteReport>, StageError> {
     let params: BridgeParams =
-        serde_json::from_value(spec.params.clone()).map_err(|e| StageError::Failed(format!("bridge params: {e}")))?;
-    let session_prefix = zbus::key_prefix(&params.graph, &params.host).map_err(StageError::Failed)?;
+        serde_json::from_value(spec.params.clone()).map_err(|e| StageError::failed(format!("bridge params: {e}")))?;
+    let session_prefix = zbus::key_prefix(&params.graph, &params.host).map_err(StageError::failed)?;
     let zenoh = ZenohTransport::open(&params.zenoh, &session_prefix, stop.clone())?;
     let handshake = Duration::from_millis(spec.handshake_timeout_ms);
     let remote = Duration::from_millis(params.remote_timeout_ms);
@@ -162,7 +162,7 @@ pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteRe
                 })
         })
         .collect::<Result<_, _>>()
-        .map_err(|e| StageError::Failed(format!("cannot start a bridge thread: {e}")))?;
+        .map_err(|e| StageError::failed(format!("cannot start a bridge thread: {e}")))?;
     let mut reports = Vec::new();
     let mut failure = None;
     for thread in threads {
@@ -189,7 +189,7 @@ pub fn run_bridge(spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<Vec<RouteRe
         }
     }
     match failure {
-        Some(f) => Err(StageError::Failed(f)),
+        Some(f) => Err(StageError::failed(f)),
         None if stop.load(Ordering::Relaxed) && reports.len() < params.routes.len() => {
             Err(StageError::Bus(BusError::Shutdown))
         }

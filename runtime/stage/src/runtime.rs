@@ -51,9 +51,10 @@ pub enum StageError {
         /// What is wrong.
         reason: String,
     },
-    /// A stage-specific failure.
-    #[error("{0}")]
-    Failed(String),
+    /// A stage-specific failure: the stage's own error, whose cause chain (`source()`) is
+    /// kept, or a message.
+    #[error(transparent)]
+    Failed(Box<dyn std::error::Error + Send + Sync + 'static>),
 }
 
 impl From<ParamError> for StageError {
@@ -63,9 +64,10 @@ impl From<ParamError> for StageError {
 }
 
 impl StageError {
-    /// A stage-specific failure from anything printable.
-    pub fn failed(e: impl std::fmt::Display) -> Self {
-        Self::Failed(e.to_string())
+    /// A stage-specific failure: an error (its cause chain kept) or a message (`String`,
+    /// `&str`).
+    pub fn failed(e: impl Into<Box<dyn std::error::Error + Send + Sync + 'static>>) -> Self {
+        Self::Failed(e.into())
     }
 }
 

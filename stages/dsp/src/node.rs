@@ -111,7 +111,7 @@ impl DspStage {
         let fc = self.params.center_frequency_hz.unwrap_or(t.center_frequency_hz);
         let chain = TraceChain::new(&self.params.chain(), t.len(), t.sample_interval_ns, fc).map_err(|e| match e {
             e @ Error::Param { .. } => param_error(e),
-            other => StageError::Failed(format!(
+            other => StageError::failed(format!(
                 "the first trace ({} samples, {} ns, centre frequency {fc} Hz) does not suit the chain: {other}",
                 t.len(),
                 t.sample_interval_ns

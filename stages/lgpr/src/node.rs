@@ -73,7 +73,7 @@ impl LgprDspStage {
             )
             // parameters were checked at start-up: what fails here is the sweep's shape
             .map_err(|e| {
-                StageError::Failed(format!(
+                StageError::failed(format!(
                     "the first sweep (seq {}) does not suit the chain: {e}",
                     input.seq()
                 ))
@@ -173,7 +173,7 @@ impl Stage for LgprDspStage {
                     s.channel_count as usize,
                     s.bin_count as usize,
                 )
-                .map_err(|e| StageError::Failed(format!("factory calibration (seq {}): {e}", input.seq())))?;
+                .map_err(|e| StageError::failed(format!("factory calibration (seq {}): {e}", input.seq())))?;
                 self.factory = Some(f);
             }
             "wheel" => {

@@ -101,7 +101,7 @@ pub fn run_stage(
         LinesStage::NAME => run::<LinesStage>(spec, &transport, stop),
         RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
         ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
-        other => Err(StageError::Failed(format!(
+        other => Err(StageError::failed(format!(
             "unknown stage `{other}` (known: {})",
             catalog()
                 .iter()
