@@ -6,16 +6,13 @@
 // Tests spawn helper threads and processes; names would add nothing.
 #![allow(clippy::disallowed_methods)]
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-const GPRFLOW: &str = env!("CARGO_BIN_EXE_gprflow");
-const BASEMENT: &str = "recordings/sim/basement-forward_backward.mcap";
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
+use common::{BASEMENT, GPRFLOW, gprflow, repo};
 
 fn ip(args: &[&str]) {
     let o = Command::new("ip").args(args).output().expect("`ip` runs (iproute2)");
@@ -115,14 +112,6 @@ fn finish(mut child: Child, limit: Duration, log: &Path) -> (bool, String) {
         std::thread::sleep(Duration::from_millis(50));
     };
     (ok, std::fs::read_to_string(log).unwrap_or_default())
-}
-
-fn gprflow(args: &[&str]) -> Output {
-    Command::new(GPRFLOW)
-        .current_dir(repo())
-        .args(args)
-        .output()
-        .expect("gprflow runs")
 }
 
 fn text(o: &Output) -> String {
