@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Regenerates the golden outputs of the shipped graphs (recordings/golden/GRAPH.mcap) on
 # purpose, showing with `gprflow diff` what changed against the previous golden first.
-# The golden tests (tests/e2e.rs, `golden_*`) rerun each graph and diff it
+# The golden tests (tests/e2e/golden.rs, `golden_*`) rerun each graph and diff it
 # against its golden; run this script when a change of output is intended, and commit the
 # new goldens with the change that caused them.
 #   tools/scripts/update-goldens.sh
@@ -11,7 +11,7 @@ cargo build -p gprflow-cli
 bin=target/debug/gprflow
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-# inputs made on demand (as tests/e2e.rs makes them: keep the two alike)
+# inputs made on demand (as tests/e2e/sim.rs makes them: keep the two alike)
 "$bin" sim tools/sim/scenarios/pipes_one_line.yaml --run lawnmower --duration 150 -o "$tmp/pipes.mcap"
 "$bin" sim tools/sim/scenarios/parking_garage.yaml --run loops --duration 20 -o "$tmp/garage.mcap"
 "$bin" sim tools/sim/scenarios/highway.yaml --run map --duration 1 -o "$tmp/highway.mcap"
