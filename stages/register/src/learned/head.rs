@@ -1,8 +1,11 @@
 //! The regression head (SPEC "Head"): a linear or nonlinear map of the correlation vector to
-//! the shift, and the model's constants, read from its JSON file.
+//! the shift, and the model's constants, read from its JSON file (serde, then one pass of
+//! checks).
 
 use std::path::Path;
 
+use serde::de::{self, DeserializeOwned, IgnoredAny};
+use serde::{Deserialize, Deserializer};
 use serde_json::{Map, Value};
 
 use super::correlation::{CorrVector, CorrelationParams};
@@ -71,23 +74,6 @@ pub struct Agreement {
 }
 
 impl Agreement {
-    fn parse(rd: &HeadReader<'_>, value: &Value) -> Result<Agreement> {
-        let obj = rd.object(value, "agreement")?;
-        rd.only_keys(obj, "agreement", &["tolerance_m", "min_fraction", "rule"])?;
-        let tolerance_m = rd.number(rd.field(obj, "agreement", "tolerance_m")?, "agreement.tolerance_m")?;
-        if tolerance_m <= 0.0 {
-            return Err(rd.error("agreement.tolerance_m", format!("{tolerance_m}, expected > 0")));
-        }
-        let min_fraction = rd.number(rd.field(obj, "agreement", "min_fraction")?, "agreement.min_fraction")?;
-        if !(0.0..=1.0).contains(&min_fraction) {
-            return Err(rd.error("agreement.min_fraction", format!("{min_fraction}, expected in [0, 1]")));
-        }
-        Ok(Agreement {
-            tolerance_m,
-            min_fraction,
-        })
-    }
-
     /// The fraction of the channels of `corr` whose `tau_k` lies within `tolerance_m` of
     /// `shift_m`.
     pub fn fraction(&self, corr: &CorrVector, shift_m: f64) -> f64 {
@@ -131,109 +117,6 @@ pub struct Head {
     layers: Vec<HeadLayer>,
 }
 
-/// Reads the fields of a head file, each error naming the file and the field.
-struct HeadReader<'a> {
-    file: &'a Path,
-}
-
-impl HeadReader<'_> {
-    fn error(&self, field: &str, message: impl Into<String>) -> Error {
-        Error::Head {
-            file: self.file.to_path_buf(),
-            field: field.to_string(),
-            message: message.into(),
-        }
-    }
-
-    fn object<'v>(&self, value: &'v Value, field: &str) -> Result<&'v Map<String, Value>> {
-        value
-            .as_object()
-            .ok_or_else(|| self.error(field, format!("expected an object, got {}", kind_of(value))))
-    }
-
-    fn field<'v>(&self, obj: &'v Map<String, Value>, prefix: &str, key: &str) -> Result<&'v Value> {
-        obj.get(key).ok_or_else(|| self.error(&join(prefix, key), "missing"))
-    }
-
-    fn only_keys(&self, obj: &Map<String, Value>, prefix: &str, known: &[&str]) -> Result<()> {
-        match obj.keys().find(|k| !known.contains(&k.as_str())) {
-            Some(k) => Err(self.error(&join(prefix, k), format!("unknown field (known: {})", known.join(", ")))),
-            None => Ok(()),
-        }
-    }
-
-    fn string<'v>(&self, value: &'v Value, field: &str) -> Result<&'v str> {
-        value
-            .as_str()
-            .ok_or_else(|| self.error(field, format!("expected a string, got {}", kind_of(value))))
-    }
-
-    fn number(&self, value: &Value, field: &str) -> Result<f64> {
-        match value.as_f64() {
-            Some(x) if x.is_finite() => Ok(x),
-            _ => Err(self.error(field, format!("expected a finite number, got {}", kind_of(value)))),
-        }
-    }
-
-    fn count(&self, value: &Value, field: &str) -> Result<usize> {
-        match value.as_u64().and_then(|n| usize::try_from(n).ok()) {
-            Some(n) if n > 0 => Ok(n),
-            _ => Err(self.error(field, format!("expected an integer >= 1, got {value}"))),
-        }
-    }
-
-    fn numbers(&self, value: &Value, field: &str, len: usize) -> Result<Vec<f64>> {
-        let items = value
-            .as_array()
-            .ok_or_else(|| self.error(field, format!("expected an array, got {}", kind_of(value))))?;
-        if items.len() != len {
-            return Err(self.error(field, format!("{} values, expected {len}", items.len())));
-        }
-        items
-            .iter()
-            .enumerate()
-            .map(|(i, v)| self.number(v, &format!("{field}[{i}]")))
-            .collect()
-    }
-}
-
-fn join(prefix: &str, key: &str) -> String {
-    if prefix.is_empty() {
-        key.to_string()
-    } else {
-        format!("{prefix}.{key}")
-    }
-}
-
-fn kind_of(value: &Value) -> String {
-    match value {
-        Value::Null => "null".into(),
-        Value::Bool(b) => format!("{b}"),
-        Value::Number(n) => format!("{n}"),
-        Value::String(s) => format!("{s:?}"),
-        Value::Array(a) => format!("an array of {}", a.len()),
-        Value::Object(_) => "an object".into(),
-    }
-}
-
-const HEAD_KEYS: &[&str] = &[
-    "format",
-    "version",
-    "kind",
-    "channels",
-    "column_stride",
-    "max_shift_m",
-    "min_overlap",
-    "normalise",
-    "layers",
-    "share_threshold",
-    "agreement",
-    "sigma_m",
-    "zeroth_m",
-    "encoder_crc32",
-    "training",
-];
-
 impl Head {
     /// Reads and checks a head file.
     ///
@@ -253,153 +136,13 @@ impl Head {
     /// # Errors
     /// [`Error::Head`] naming the field that is missing, malformed or of the wrong shape.
     pub fn parse(text: &str, path: &Path) -> Result<Head> {
-        let rd = HeadReader { file: path };
-        let root: Value = serde_json::from_str(text).map_err(|e| rd.error("(file)", format!("not JSON: {e}")))?;
-        let obj = rd.object(&root, "(file)")?;
-        rd.only_keys(obj, "", HEAD_KEYS)?;
-        let format = rd.string(rd.field(obj, "", "format")?, "format")?;
-        if format != HEAD_FORMAT {
-            return Err(rd.error("format", format!("{format:?}, expected {HEAD_FORMAT:?}")));
-        }
-        let version = rd.field(obj, "", "version")?;
-        if version.as_u64() != Some(HEAD_VERSION) {
-            return Err(rd.error("version", format!("{version}, this reader knows {HEAD_VERSION}")));
-        }
-        let kind = match rd.string(rd.field(obj, "", "kind")?, "kind")? {
-            "linear" => HeadKind::Linear,
-            "nonlinear" => HeadKind::Nonlinear,
-            other => return Err(rd.error("kind", format!("{other:?}, expected \"linear\" or \"nonlinear\""))),
-        };
-        let channels = rd.count(rd.field(obj, "", "channels")?, "channels")?;
-        let column_stride = rd.count(rd.field(obj, "", "column_stride")?, "column_stride")?;
-        let max_shift_m = rd.number(rd.field(obj, "", "max_shift_m")?, "max_shift_m")?;
-        if max_shift_m < 0.0 {
-            return Err(rd.error("max_shift_m", format!("{max_shift_m}, expected >= 0")));
-        }
-        let min_overlap = rd.number(rd.field(obj, "", "min_overlap")?, "min_overlap")?;
-        if !(min_overlap > 0.0 && min_overlap <= 1.0) {
-            return Err(rd.error("min_overlap", format!("{min_overlap}, expected in (0, 1]")));
-        }
-        let inputs = 2 * channels;
-        let normalise = rd.object(rd.field(obj, "", "normalise")?, "normalise")?;
-        rd.only_keys(normalise, "normalise", &["mean", "std"])?;
-        let mean = rd.numbers(rd.field(normalise, "normalise", "mean")?, "normalise.mean", inputs)?;
-        let std = rd.numbers(rd.field(normalise, "normalise", "std")?, "normalise.std", inputs)?;
-        if let Some(i) = std.iter().position(|&s| s <= 0.0) {
-            return Err(rd.error(&format!("normalise.std[{i}]"), format!("{}, expected > 0", std[i])));
-        }
-        let layers = Head::parse_layers(&rd, rd.field(obj, "", "layers")?, kind, inputs)?;
-        let share_threshold = rd.number(rd.field(obj, "", "share_threshold")?, "share_threshold")?;
-        let agreement = match obj.get("agreement") {
-            None | Some(Value::Null) => None,
-            Some(value) => Some(Agreement::parse(&rd, value)?),
-        };
-        let sigma_m = rd.number(rd.field(obj, "", "sigma_m")?, "sigma_m")?;
-        if sigma_m <= 0.0 {
-            return Err(rd.error("sigma_m", format!("{sigma_m}, expected > 0")));
-        }
-        let zeroth_m = rd.number(rd.field(obj, "", "zeroth_m")?, "zeroth_m")?;
-        let encoder_crc32 = match obj.get("encoder_crc32") {
-            None | Some(Value::Null) => None,
-            Some(value) => {
-                let text = rd.string(value, "encoder_crc32")?;
-                let parsed = (text.len() == 8).then(|| u32::from_str_radix(text, 16).ok()).flatten();
-                Some(parsed.ok_or_else(|| rd.error("encoder_crc32", format!("{text:?}, expected 8 hex digits")))?)
-            }
-        };
-        Ok(Head {
-            kind,
-            channels,
-            column_stride,
-            max_shift_m,
-            min_overlap,
-            share_threshold,
-            agreement,
-            sigma_m,
-            zeroth_m,
-            encoder_crc32,
-            training: obj.get("training").cloned().unwrap_or(Value::Null),
-            mean,
-            std,
-            layers,
-        })
-    }
-
-    fn parse_layers(rd: &HeadReader<'_>, value: &Value, kind: HeadKind, inputs: usize) -> Result<Vec<HeadLayer>> {
-        let items = value
-            .as_array()
-            .ok_or_else(|| rd.error("layers", format!("expected an array, got {}", kind_of(value))))?;
-        match (kind, items.len()) {
-            (_, 0) => return Err(rd.error("layers", "empty")),
-            (HeadKind::Linear, n) if n != 1 => {
-                return Err(rd.error("layers", format!("{n} layers, a linear head has 1")));
-            }
-            (HeadKind::Nonlinear, 1) => {
-                return Err(rd.error("layers", "1 layer, a nonlinear head has hidden layers"));
-            }
-            _ => {}
-        }
-        let mut layers = Vec::with_capacity(items.len());
-        let mut width = inputs;
-        for (i, item) in items.iter().enumerate() {
-            let field = format!("layers[{i}]");
-            let obj = rd.object(item, &field)?;
-            rd.only_keys(obj, &field, &["weights", "bias", "activation"])?;
-            let last = i + 1 == items.len();
-            let activation = match rd.string(rd.field(obj, &field, "activation")?, &join(&field, "activation"))? {
-                "none" => Activation::None,
-                "relu" => Activation::Relu,
-                other => {
-                    return Err(rd.error(
-                        &join(&field, "activation"),
-                        format!("{other:?}, expected \"none\" or \"relu\""),
-                    ));
-                }
-            };
-            let expected = if last { Activation::None } else { Activation::Relu };
-            if activation != expected {
-                return Err(rd.error(
-                    &join(&field, "activation"),
-                    format!(
-                        "{activation:?}, expected {expected:?} ({})",
-                        if last { "the output layer" } else { "a hidden layer" }
-                    ),
-                ));
-            }
-            let weights_field = join(&field, "weights");
-            let rows = rd.field(obj, &field, "weights")?;
-            let rows = rows.as_array().ok_or_else(|| {
-                rd.error(
-                    &weights_field,
-                    format!("expected an array of rows, got {}", kind_of(rows)),
-                )
-            })?;
-            let bias_value = rd.field(obj, &field, "bias")?;
-            let outputs = if last {
-                1
-            } else {
-                bias_value.as_array().map_or(0, Vec::len)
-            };
-            if outputs == 0 {
-                return Err(rd.error(&join(&field, "bias"), "expected a non-empty array"));
-            }
-            if rows.len() != outputs {
-                return Err(rd.error(&weights_field, format!("{} rows, expected {outputs}", rows.len())));
-            }
-            let bias = rd.numbers(bias_value, &join(&field, "bias"), outputs)?;
-            let mut weights = Vec::with_capacity(outputs * width);
-            for (r, row) in rows.iter().enumerate() {
-                weights.extend(rd.numbers(row, &format!("{weights_field}[{r}]"), width)?);
-            }
-            layers.push(HeadLayer {
-                weights,
-                bias,
-                inputs: width,
-                activation,
-            });
-            width = outputs;
-        }
-        Ok(layers)
+        let check = Check { file: path };
+        let root: Value = serde_json::from_str(text).map_err(|e| check.error("(file)", format!("not JSON: {e}")))?;
+        let Object(file) = Object::<HeadFile>::deserialize(&root).map_err(|e| {
+            let (field, message) = culprit::<Object<HeadFile>>(&root, e);
+            check.error(&field, message)
+        })?;
+        file.check(&check)
     }
 
     /// The layers, input first.
@@ -446,6 +189,373 @@ impl Head {
             max_shift_m: self.max_shift_m,
             min_overlap: self.min_overlap,
         }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The file
+
+/// A head file as written (`tools/train/SPEC.md`, "Head"). Every field may be absent here (the
+/// checks, [`HeadFile::check`], say which must be there), so that a part of the file can be
+/// deserialised on its own ([`culprit`]).
+#[derive(Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct HeadFile {
+    format: Field<String>,
+    version: Field<Value>,
+    kind: Field<String>,
+    channels: Field<usize>,
+    column_stride: Field<usize>,
+    max_shift_m: Field<f64>,
+    min_overlap: Field<f64>,
+    normalise: Field<Object<NormaliseFile>>,
+    layers: Field<Vec<Object<LayerFile>>>,
+    share_threshold: Field<f64>,
+    agreement: Option<Object<AgreementFile>>,
+    sigma_m: Field<f64>,
+    zeroth_m: Field<f64>,
+    /// 8 hex digits.
+    encoder_crc32: Option<String>,
+    /// Free-form.
+    training: Value,
+}
+
+/// `normalise`: the head takes `(v - mean) / std`.
+#[derive(Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct NormaliseFile {
+    mean: Field<Vec<f64>>,
+    std: Field<Vec<f64>>,
+}
+
+/// One of `layers`: `weights` (`outputs` rows of `inputs`), `bias`, `activation` (`none`,
+/// `relu`).
+#[derive(Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct LayerFile {
+    weights: Field<Vec<Vec<f64>>>,
+    bias: Field<Vec<f64>>,
+    activation: Field<String>,
+}
+
+/// `agreement` ([`Agreement`]).
+#[derive(Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct AgreementFile {
+    tolerance_m: Field<f64>,
+    min_fraction: Field<f64>,
+    /// How training chose `min_fraction`, in words.
+    #[serde(rename = "rule")]
+    _rule: IgnoredAny,
+}
+
+/// A field that may be absent. Unlike `Option`, `null` is a value, which `T` refuses (a number
+/// that is `null` is no number rather than missing).
+struct Field<T>(Option<T>);
+
+impl<T> Default for Field<T> {
+    fn default() -> Self {
+        Field(None)
+    }
+}
+
+impl<'de, T: Deserialize<'de>> Deserialize<'de> for Field<T> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        T::deserialize(d).map(|v| Field(Some(v)))
+    }
+}
+
+/// A `T` written as a JSON object (serde would take a struct's fields from an array too).
+struct Object<T>(T);
+
+impl<'de, T: DeserializeOwned> Deserialize<'de> for Object<T> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let fields = Map::deserialize(d)?;
+        T::deserialize(Value::Object(fields))
+            .map(Object)
+            .map_err(de::Error::custom)
+    }
+}
+
+/// Errors naming the head file and the field.
+struct Check<'a> {
+    file: &'a Path,
+}
+
+impl Check<'_> {
+    fn error(&self, field: &str, message: impl Into<String>) -> Error {
+        Error::Head {
+            file: self.file.to_path_buf(),
+            field: field.to_string(),
+            message: message.into(),
+        }
+    }
+
+    /// A field that must be there.
+    fn need<T>(&self, value: Field<T>, field: &str) -> Result<T> {
+        value.0.ok_or_else(|| self.error(field, "missing"))
+    }
+
+    /// A field that must be there and be an integer >= 1.
+    fn count(&self, value: Field<usize>, field: &str) -> Result<usize> {
+        match self.need(value, field)? {
+            0 => Err(self.error(field, "expected an integer >= 1, got 0")),
+            n => Ok(n),
+        }
+    }
+
+    /// A number that must be there and be `ok` (`expected` says how).
+    fn number(&self, value: Field<f64>, field: &str, ok: impl Fn(f64) -> bool, expected: &str) -> Result<f64> {
+        let x = self.need(value, field)?;
+        if ok(x) {
+            Ok(x)
+        } else {
+            Err(self.error(field, format!("{x}, expected {expected}")))
+        }
+    }
+
+    /// `values`, which must be `len`.
+    fn numbers(&self, values: Vec<f64>, field: &str, len: usize) -> Result<Vec<f64>> {
+        if values.len() != len {
+            return Err(self.error(field, format!("{} values, expected {len}", values.len())));
+        }
+        Ok(values)
+    }
+}
+
+impl HeadFile {
+    /// The head the file holds: every field there that must be, the sizes fitting together
+    /// (`2 channels` inputs, layer after layer), the numbers in range.
+    fn check(self, check: &Check<'_>) -> Result<Head> {
+        let format = check.need(self.format, "format")?;
+        if format != HEAD_FORMAT {
+            return Err(check.error("format", format!("{format:?}, expected {HEAD_FORMAT:?}")));
+        }
+        let version = check.need(self.version, "version")?;
+        if version.as_u64() != Some(HEAD_VERSION) {
+            return Err(check.error("version", format!("{version}, this reader knows {HEAD_VERSION}")));
+        }
+        let kind = match check.need(self.kind, "kind")?.as_str() {
+            "linear" => HeadKind::Linear,
+            "nonlinear" => HeadKind::Nonlinear,
+            other => return Err(check.error("kind", format!("{other:?}, expected \"linear\" or \"nonlinear\""))),
+        };
+        let channels = check.count(self.channels, "channels")?;
+        let column_stride = check.count(self.column_stride, "column_stride")?;
+        let max_shift_m = check.number(self.max_shift_m, "max_shift_m", |x| x >= 0.0, ">= 0")?;
+        let min_overlap = check.number(self.min_overlap, "min_overlap", |x| x > 0.0 && x <= 1.0, "in (0, 1]")?;
+        let inputs = 2 * channels;
+        let Object(normalise) = check.need(self.normalise, "normalise")?;
+        let mean = check.numbers(check.need(normalise.mean, "normalise.mean")?, "normalise.mean", inputs)?;
+        let std = check.numbers(check.need(normalise.std, "normalise.std")?, "normalise.std", inputs)?;
+        if let Some(i) = std.iter().position(|&s| s <= 0.0) {
+            return Err(check.error(&format!("normalise.std[{i}]"), format!("{}, expected > 0", std[i])));
+        }
+        let layers = check_layers(check, check.need(self.layers, "layers")?, kind, inputs)?;
+        let share_threshold = check.need(self.share_threshold, "share_threshold")?;
+        let agreement = match self.agreement {
+            Some(Object(agreement)) => Some(agreement.check(check)?),
+            None => None,
+        };
+        let sigma_m = check.number(self.sigma_m, "sigma_m", |x| x > 0.0, "> 0")?;
+        let zeroth_m = check.need(self.zeroth_m, "zeroth_m")?;
+        let encoder_crc32 = match self.encoder_crc32 {
+            Some(text) => {
+                let parsed = (text.len() == 8).then(|| u32::from_str_radix(&text, 16).ok()).flatten();
+                Some(parsed.ok_or_else(|| check.error("encoder_crc32", format!("{text:?}, expected 8 hex digits")))?)
+            }
+            None => None,
+        };
+        Ok(Head {
+            kind,
+            channels,
+            column_stride,
+            max_shift_m,
+            min_overlap,
+            share_threshold,
+            agreement,
+            sigma_m,
+            zeroth_m,
+            encoder_crc32,
+            training: self.training,
+            mean,
+            std,
+            layers,
+        })
+    }
+}
+
+/// The layers of a `kind` head taking `inputs` values: a linear head has one, a nonlinear head
+/// hidden ones (ReLU) too; the last has one output and no activation.
+fn check_layers(
+    check: &Check<'_>,
+    items: Vec<Object<LayerFile>>,
+    kind: HeadKind,
+    inputs: usize,
+) -> Result<Vec<HeadLayer>> {
+    match (kind, items.len()) {
+        (_, 0) => return Err(check.error("layers", "empty")),
+        (HeadKind::Linear, n) if n != 1 => {
+            return Err(check.error("layers", format!("{n} layers, a linear head has 1")));
+        }
+        (HeadKind::Nonlinear, 1) => {
+            return Err(check.error("layers", "1 layer, a nonlinear head has hidden layers"));
+        }
+        _ => {}
+    }
+    let count = items.len();
+    let mut layers = Vec::with_capacity(count);
+    let mut width = inputs;
+    for (i, Object(layer)) in items.into_iter().enumerate() {
+        let field = |key: &str| format!("layers[{i}].{key}");
+        let last = i + 1 == count;
+        let activation = match check.need(layer.activation, &field("activation"))?.as_str() {
+            "none" => Activation::None,
+            "relu" => Activation::Relu,
+            other => {
+                return Err(check.error(
+                    &field("activation"),
+                    format!("{other:?}, expected \"none\" or \"relu\""),
+                ));
+            }
+        };
+        let expected = if last { Activation::None } else { Activation::Relu };
+        if activation != expected {
+            return Err(check.error(
+                &field("activation"),
+                format!(
+                    "{activation:?}, expected {expected:?} ({})",
+                    if last { "the output layer" } else { "a hidden layer" }
+                ),
+            ));
+        }
+        let rows = check.need(layer.weights, &field("weights"))?;
+        let bias = check.need(layer.bias, &field("bias"))?;
+        let outputs = if last { 1 } else { bias.len() };
+        if outputs == 0 {
+            return Err(check.error(&field("bias"), "expected a non-empty array"));
+        }
+        if rows.len() != outputs {
+            return Err(check.error(&field("weights"), format!("{} rows, expected {outputs}", rows.len())));
+        }
+        let bias = check.numbers(bias, &field("bias"), outputs)?;
+        let mut weights = Vec::with_capacity(outputs * width);
+        for (r, row) in rows.into_iter().enumerate() {
+            weights.extend(check.numbers(row, &format!("{}[{r}]", field("weights")), width)?);
+        }
+        layers.push(HeadLayer {
+            weights,
+            bias,
+            inputs: width,
+            activation,
+        });
+        width = outputs;
+    }
+    Ok(layers)
+}
+
+impl AgreementFile {
+    fn check(self, check: &Check<'_>) -> Result<Agreement> {
+        let tolerance_m = check.number(self.tolerance_m, "agreement.tolerance_m", |x| x > 0.0, "> 0")?;
+        let min_fraction = check.number(
+            self.min_fraction,
+            "agreement.min_fraction",
+            |x| (0.0..=1.0).contains(&x),
+            "in [0, 1]",
+        )?;
+        Ok(Agreement {
+            tolerance_m,
+            min_fraction,
+        })
+    }
+}
+
+/// A step down a JSON value.
+enum Step<'v> {
+    Key(&'v str),
+    Index(usize),
+}
+
+/// Where and why `root` does not deserialise as a `T` (`error`): its path (`layers[0].bias`,
+/// `(file)` for the root) and the message in this file's words ([`reworded`]). serde names a
+/// field that is unknown but not one whose value has the wrong type, so the part at fault is
+/// found by deserialising `root` cut down to one branch (every field of `T` may be absent):
+/// from the root down, the first child that fails on its own, until a value that fails with
+/// none of its children (or empty, when it is an object or an array of the wrong kind).
+fn culprit<T: DeserializeOwned>(root: &Value, mut error: serde_json::Error) -> (String, String) {
+    // `node` at the end of `path`, and nothing else
+    let fails = |path: &[Step<'_>], node: Value| {
+        let branch = path.iter().rev().fold(node, |v, step| match step {
+            Step::Key(k) => Value::Object(Map::from_iter([(k.to_string(), v)])),
+            Step::Index(_) => Value::Array(vec![v]),
+        });
+        T::deserialize(&branch).err()
+    };
+    let mut path = Vec::new();
+    let mut node = root;
+    'down: loop {
+        let children: Vec<(Step<'_>, &Value)> = match node {
+            Value::Object(m) if fails(&path, Value::Object(Map::new())).is_none() => {
+                m.iter().map(|(k, v)| (Step::Key(k), v)).collect()
+            }
+            Value::Array(a) if fails(&path, Value::Array(Vec::new())).is_none() => {
+                a.iter().enumerate().map(|(i, v)| (Step::Index(i), v)).collect()
+            }
+            _ => Vec::new(),
+        };
+        for (step, child) in children {
+            path.push(step);
+            if let Some(e) = fails(&path, child.clone()) {
+                (error, node) = (e, child);
+                continue 'down;
+            }
+            path.pop();
+        }
+        break;
+    }
+    let mut field = String::new();
+    for step in &path {
+        match step {
+            Step::Key(k) if field.is_empty() => field.push_str(k),
+            Step::Key(k) => field.push_str(&format!(".{k}")),
+            Step::Index(i) => field.push_str(&format!("[{i}]")),
+        }
+    }
+    if field.is_empty() {
+        field.push_str("(file)");
+    }
+    (field, reworded(&error.to_string(), node))
+}
+
+/// serde's "invalid type: map, expected a sequence" in this file's words: "expected an array,
+/// got an object" (`node`: the value at fault).
+fn reworded(message: &str, node: &Value) -> String {
+    let expected = ["invalid type: ", "invalid value: "]
+        .into_iter()
+        .find_map(|prefix| message.strip_prefix(prefix))
+        .and_then(|rest| rest.split_once(", expected "));
+    let Some((_, expected)) = expected else {
+        return message.to_string();
+    };
+    let expected = match expected {
+        "a sequence" => "an array",
+        "a map" => "an object",
+        "f64" => "a finite number",
+        "usize" => "an integer >= 1",
+        other => other,
+    };
+    format!("expected {expected}, got {}", kind_of(node))
+}
+
+/// A value as the messages name it.
+fn kind_of(value: &Value) -> String {
+    match value {
+        Value::Null => "null".into(),
+        Value::Bool(b) => format!("{b}"),
+        Value::Number(n) => format!("{n}"),
+        Value::String(s) => format!("{s:?}"),
+        Value::Array(a) => format!("an array of {}", a.len()),
+        Value::Object(_) => "an object".into(),
     }
 }
 
@@ -617,6 +727,67 @@ mod tests {
             assert!(msg.starts_with("models/ground_encoding.head.json: "), "{msg}");
             assert!(msg.contains(want), "{msg}\n  wanted: {want}");
         }
+    }
+
+    #[test]
+    fn what_serde_alone_would_take_or_leave_unnamed_is_refused_with_its_field() {
+        // serde takes a struct from an array, `null` for an absent `Option`, and names no field
+        // in a type error
+        let path = Path::new("h.json");
+        let one = r#"[{"weights": [[0.5, 0.5, 0, 1]], "bias": [0.25], "activation": "none"}]"#;
+        let cases = [
+            (
+                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"agreement\": [0.05, 0.5]"),
+                "h.json: agreement: expected an object, got an array of 2",
+            ),
+            (
+                head_json("linear", r#"[[[[0.5, 0.5, 0, 1]], [0.25], "none"]]"#),
+                "h.json: layers[0]: expected an object, got an array of 3",
+            ),
+            (
+                head_json("linear", one).replace("\"sigma_m\": 0.05", "\"sigma_m\": null"),
+                "h.json: sigma_m: expected a finite number, got null",
+            ),
+            (
+                head_json("linear", one).replace("\"channels\": 2", "\"channels\": 1.5"),
+                "h.json: channels: expected an integer >= 1, got 1.5",
+            ),
+            (
+                head_json("linear", one).replace("\"channels\": 2", "\"channels\": -2"),
+                "h.json: channels: expected an integer >= 1, got -2",
+            ),
+            (
+                head_json("linear", one).replace("[1, 1, 0.5, 0.5]", "[1, \"1\", 0.5, 0.5]"),
+                "h.json: normalise.std[1]: expected a finite number, got \"1\"",
+            ),
+            (
+                head_json("linear", one).replace("[[0.5, 0.5, 0, 1]]", "[[0.5, 0.5, 0, {}]]"),
+                "h.json: layers[0].weights[0][3]: expected a finite number, got an object",
+            ),
+            (
+                head_json("linear", one).replace(
+                    "\"activation\": \"none\"",
+                    "\"activation\": \"none\", \"x\": {\"y\": 1}",
+                ),
+                "h.json: layers[0].x: unknown field",
+            ),
+            (
+                head_json("linear", one).replace("\"zeroth_m\": 0.1", "\"zeroth_m\": 0.1, \"encoder_crc32\": 5"),
+                "h.json: encoder_crc32: expected a string, got 5",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = Head::parse(&text, path).expect_err(want);
+            assert!(matches!(e, Error::Head { .. }), "{e:?}");
+            assert!(e.to_string().starts_with(want), "{e}\n  wanted: {want}");
+        }
+        // and `null` where an optional part may be absent is absent, as before
+        let text = head_json("linear", one).replace(
+            "\"zeroth_m\": 0.1",
+            "\"zeroth_m\": 0.1, \"agreement\": null, \"encoder_crc32\": null",
+        );
+        let head = Head::parse(&text, path).expect("valid");
+        assert_eq!((head.agreement, head.encoder_crc32), (None, None));
     }
 
     proptest::proptest! {
