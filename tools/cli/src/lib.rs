@@ -10,7 +10,11 @@ pub mod plot;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};
-use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, describe, run_node};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use gprflow::bus::Transport;
+use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, StageInfo, describe, run_node};
 use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_ingest::node::IngestStage;
@@ -40,32 +44,50 @@ pub fn error_line(e: &anyhow::Error) -> String {
     line
 }
 
+/// A stage kind this build can run: its name, its description and its runner.
+struct Kind {
+    name: &'static str,
+    describe: fn() -> Box<dyn StageInfo>,
+    run: fn(&NodeSpec, &dyn Transport, &Arc<AtomicBool>) -> Result<RunReport, StageError>,
+}
+
+const fn kind<S: Stage + 'static>() -> Kind {
+    Kind {
+        name: S::NAME,
+        describe: describe::<S>,
+        run: run_node::<S>,
+    }
+}
+
+/// Every stage kind this build can run, written once: [`catalog`] describes them and
+/// [`run_stage`] runs them.
+const STAGES: &[Kind] = &[
+    kind::<ToySource>(),
+    kind::<ToyGain>(),
+    kind::<EstimateStage>(),
+    kind::<SubmapStage>(),
+    kind::<IngestStage>(),
+    kind::<DspStage>(),
+    kind::<DspSubmapStage>(),
+    kind::<LgprDspStage>(),
+    kind::<RegisterStage>(),
+    kind::<LinesStage>(),
+    kind::<RecordStage>(),
+    kind::<ReplayStage>(),
+];
+
 /// Every stage kind this build can run.
 pub fn catalog() -> StageCatalog {
-    StageCatalog::new()
-        .with(describe::<ToySource>())
-        .with(describe::<ToyGain>())
-        .with(describe::<EstimateStage>())
-        .with(describe::<SubmapStage>())
-        .with(describe::<IngestStage>())
-        .with(describe::<DspStage>())
-        .with(describe::<DspSubmapStage>())
-        .with(describe::<LgprDspStage>())
-        .with(describe::<RegisterStage>())
-        .with(describe::<LinesStage>())
-        .with(describe::<RecordStage>())
-        .with(describe::<ReplayStage>())
+    STAGES
+        .iter()
+        .fold(StageCatalog::new(), |catalog, kind| catalog.with((kind.describe)()))
 }
 
 /// Runs the stage named in `spec` in this process over iceoryx2.
 ///
 /// # Errors
 /// Unknown stage, or the stage's error.
-pub fn run_stage(
-    kind: &str,
-    spec: &NodeSpec,
-    stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
-) -> Result<RunReport, StageError> {
+pub fn run_stage(kind: &str, spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<RunReport, StageError> {
     if kind == gprflow::bridge::BRIDGE_STAGE {
         let started = std::time::Instant::now();
         let routes = gprflow::bridge::run_bridge(spec, stop)?;
@@ -80,36 +102,15 @@ pub fn run_stage(
             interrupted: false,
         });
     }
+    let Some(kind) = STAGES.iter().find(|k| k.name == kind) else {
+        let known: Vec<&str> = STAGES.iter().map(|k| k.name).collect();
+        return Err(StageError::failed(format!(
+            "unknown stage `{kind}` (known: {})",
+            known.join(", ")
+        )));
+    };
     let transport = gprflow::bus::iox::IoxTransport::new(&spec.node, &spec.prefix, stop.clone())?;
-    fn run<S: Stage>(
-        spec: &NodeSpec,
-        t: &gprflow::bus::iox::IoxTransport,
-        stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
-    ) -> Result<RunReport, StageError> {
-        run_node::<S>(spec, t, stop)
-    }
-    match kind {
-        ToySource::NAME => run::<ToySource>(spec, &transport, stop),
-        ToyGain::NAME => run::<ToyGain>(spec, &transport, stop),
-        EstimateStage::NAME => run::<EstimateStage>(spec, &transport, stop),
-        SubmapStage::NAME => run::<SubmapStage>(spec, &transport, stop),
-        IngestStage::NAME => run::<IngestStage>(spec, &transport, stop),
-        DspStage::NAME => run::<DspStage>(spec, &transport, stop),
-        DspSubmapStage::NAME => run::<DspSubmapStage>(spec, &transport, stop),
-        LgprDspStage::NAME => run::<LgprDspStage>(spec, &transport, stop),
-        RegisterStage::NAME => run::<RegisterStage>(spec, &transport, stop),
-        LinesStage::NAME => run::<LinesStage>(spec, &transport, stop),
-        RecordStage::NAME => run::<RecordStage>(spec, &transport, stop),
-        ReplayStage::NAME => run::<ReplayStage>(spec, &transport, stop),
-        other => Err(StageError::failed(format!(
-            "unknown stage `{other}` (known: {})",
-            catalog()
-                .iter()
-                .map(|s| s.name().to_owned())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ))),
-    }
+    (kind.run)(spec, &transport, stop)
 }
 
 #[cfg(test)]
