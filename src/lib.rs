@@ -10,8 +10,8 @@
 pub use gprflow_bus as bus;
 pub use gprflow_eval as eval;
 pub use gprflow_eval::diff;
-pub use gprflow_graph as graph;
 pub use gprflow_geometry as geometry;
+pub use gprflow_graph as graph;
 pub use gprflow_graph::{bridge, launch};
 pub use gprflow_msg as msg;
 pub use gprflow_record as record;
