@@ -5,8 +5,10 @@ pub mod bench_estimate;
 pub mod calibrate;
 pub mod commands;
 pub mod convert;
+pub mod diff;
 pub mod eval;
 pub mod plot;
+pub mod radargram;
 pub mod sim;
 
 use gprflow::record::{RecordStage, ReplayStage};

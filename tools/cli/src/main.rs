@@ -411,7 +411,7 @@ fn main() -> ExitCode {
             features,
             no_features,
             output,
-        } => gprflow_cli::eval::radargram_command(&gprflow_cli::eval::RadargramRequest {
+        } => gprflow_cli::radargram::radargram_command(&gprflow_cli::radargram::RadargramRequest {
             input: &input,
             topic: &topic,
             window_s: (from, to),
@@ -430,8 +430,8 @@ fn main() -> ExitCode {
         } => match tolerances {
             Some(file) => gprflow::diff::Tolerances::from_file(&file)
                 .map_err(anyhow::Error::msg)
-                .and_then(|t| gprflow_cli::eval::diff_command(&a, &b, &t, json)),
-            None => gprflow_cli::eval::diff_command(
+                .and_then(|t| gprflow_cli::diff::diff_command(&a, &b, &t, json)),
+            None => gprflow_cli::diff::diff_command(
                 &a,
                 &b,
                 &gprflow::diff::Tolerances::uniform(gprflow::diff::Tolerance {
