@@ -1,14 +1,14 @@
-//! The launcher: turns a validated [`Graph`] into one process per node, supervises them,
-//! and cleans up.
+//! The launcher: turns a validated [`Graph`](crate::Graph) into one process per node,
+//! supervises them, and cleans up.
 //!
 //! [`plan`] is pure: it wires every node's inputs and outputs to topics (`node/output`),
 //! counts each topic's consumers (for the start-up handshake), adds the recorder, and gives
-//! the run a unique iceoryx2 resource prefix. [`launch`] writes each node's [`NodeSpec`] to a
-//! file, starts `gprflow stage <kind> --spec FILE` (or the user's executable with the same
-//! argument), forwards their logs, and waits. When a process fails, the others are asked to
-//! stop (SIGTERM, then SIGKILL after a grace period) and the failure is reported with the tail
-//! of its stderr. Children die with the launcher (`PR_SET_PDEATHSIG`). Afterwards nothing
-//! of the run is left in shared memory.
+//! the run a unique iceoryx2 resource prefix. [`launch`] writes each node's
+//! [`NodeSpec`](gprflow_stage::NodeSpec) to a file, starts `gprflow stage <kind> --spec FILE`
+//! (or the user's executable with the same argument), forwards their logs, and waits. When a
+//! process fails, the others are asked to stop (SIGTERM, then SIGKILL after a grace period)
+//! and the failure is reported with the tail of its stderr. Children die with the launcher
+//! (`PR_SET_PDEATHSIG`). Afterwards nothing of the run is left in shared memory.
 
 mod cleanup;
 mod plan;
