@@ -13,6 +13,7 @@
 //! [`fit_wheel`] calibrates a wheel against the truth (the scale `ingest`'s `wheel_scale` takes).
 
 pub mod diff;
+pub mod messages;
 mod trajectory;
 mod wheel;
 
