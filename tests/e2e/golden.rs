@@ -2,7 +2,7 @@
 //! (`recordings/golden`, remade by tools/scripts/update-goldens.sh).
 
 use crate::common::{gprflow, repo, stderr};
-use crate::sim::{pipe_sample, simulated};
+use crate::sim::sim_input;
 
 #[test]
 fn diff_passes_identical_runs_and_names_the_first_divergence() {
@@ -152,41 +152,73 @@ fn assert_reproduces_golden(graph: &str, sets: &[String]) {
     );
 }
 
+/// The `--set`s of `graph`'s golden run as `recordings/golden/inputs.txt` lists it
+/// (`tools/scripts/update-goldens.sh` reads the same list), its simulator input made on demand.
+fn golden_sets(graph: &str) -> Vec<String> {
+    let list = repo().join("recordings/golden/inputs.txt");
+    let text = std::fs::read_to_string(&list).expect("recordings/golden/inputs.txt");
+    let row = text
+        .lines()
+        .map(|line| line.split_whitespace().collect::<Vec<_>>())
+        .find(|fields| fields.first() == Some(&graph))
+        .unwrap_or_else(|| panic!("{graph} is not listed in {}", list.display()));
+    let mut sets = Vec::new();
+    if row[1] != "-" {
+        let [scenario, run, seconds] = row[1].split(':').collect::<Vec<_>>()[..] else {
+            panic!("{graph}: input `{}` is not SCENARIO:RUN:SECONDS", row[1]);
+        };
+        sets.push(format!("recording={}", sim_input(scenario, run, seconds).display()));
+    }
+    sets.extend(row[2..].iter().map(|s| (*s).to_owned()));
+    sets
+}
+
 #[test]
 fn golden_outputs_still_match() {
-    let pipes = format!("recording={}", pipe_sample().display());
-    for graph in ["toy", "replay-toy", "odometry"] {
-        assert_reproduces_golden(graph, &[]);
+    for graph in ["toy", "replay-toy", "odometry", "slam"] {
+        assert_reproduces_golden(graph, &golden_sets(graph));
     }
-    assert_reproduces_golden("slam", &[pipes]);
 }
 
 #[test]
 fn golden_localisation_still_matches() {
-    assert_reproduces_golden("localize", &[]);
+    assert_reproduces_golden("localize", &golden_sets("localize"));
 }
 
 #[test]
 fn golden_submaps_and_sweeps_still_match() {
-    // short inputs and sparse submaps keep these goldens small (floats compress poorly);
-    // made as tools/scripts/update-goldens.sh makes them (keep the two alike)
-    let garage = simulated(
-        "garage-loops-20s.mcap",
-        &[
-            "tools/sim/scenarios/parking_garage.yaml",
-            "--run",
-            "loops",
-            "--duration",
-            "20",
-        ],
-    );
-    assert_reproduces_golden(
+    // short inputs and sparse submaps keep these goldens small (floats compress poorly)
+    for graph in ["submaps", "lgpr-sweeps"] {
+        assert_reproduces_golden(graph, &golden_sets(graph));
+    }
+}
+
+#[test]
+fn every_golden_is_listed_and_tested() {
+    let text = std::fs::read_to_string(repo().join("recordings/golden/inputs.txt")).expect("list");
+    let mut listed: Vec<String> = text
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
+        .collect();
+    let mut goldens: Vec<String> = std::fs::read_dir(repo().join("recordings/golden"))
+        .expect("goldens")
+        .filter_map(|e| e.ok()?.file_name().to_str()?.strip_suffix(".mcap").map(str::to_owned))
+        .collect();
+    listed.sort();
+    goldens.sort();
+    assert_eq!(listed, goldens, "recordings/golden/*.mcap and inputs.txt disagree");
+    let tested = [
+        "toy",
+        "replay-toy",
+        "odometry",
+        "slam",
+        "localize",
         "submaps",
-        &[format!("recording={}", garage.display()), "spacing_m=1.0".into()],
+        "lgpr-sweeps",
+    ];
+    assert!(
+        listed.iter().all(|g| tested.contains(&g.as_str())),
+        "a listed golden no test reruns"
     );
-    let highway = simulated(
-        "highway-map-1s.mcap",
-        &["tools/sim/scenarios/highway.yaml", "--run", "map", "--duration", "1"],
-    );
-    assert_reproduces_golden("lgpr-sweeps", &[format!("recording={}", highway.display())]);
 }

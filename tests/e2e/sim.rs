@@ -9,15 +9,16 @@ use crate::peer_check;
 /// The pipe-field sample that `graphs/slam.yaml` reads (`recording`), made on demand as
 /// `tools/sim/make-samples.sh` makes it (the simulator is deterministic; too big to commit).
 pub(crate) fn pipe_sample() -> PathBuf {
+    sim_input("pipes_one_line.yaml", "lawnmower", "150")
+}
+
+/// The simulator's run `run` of `tools/sim/scenarios/SCENARIO`, `seconds` long, made once.
+pub(crate) fn sim_input(scenario: &str, run: &str, seconds: &str) -> PathBuf {
+    let stem = scenario.trim_end_matches(".yaml");
+    let path = format!("tools/sim/scenarios/{scenario}");
     simulated(
-        "pipes-lawnmower-150s.mcap",
-        &[
-            "tools/sim/scenarios/pipes_one_line.yaml",
-            "--run",
-            "lawnmower",
-            "--duration",
-            "150",
-        ],
+        &format!("{stem}-{run}-{seconds}s.mcap"),
+        &[&path, "--run", run, "--duration", seconds],
     )
 }
 
