@@ -8,11 +8,14 @@
 //! - [`front_end`]: the encoder's weight-free front end, run before the ONNX graph.
 //! - [`stretch`]: a submap's travel times stretched, for the learned method's search over the
 //!   wave speed changing between passes.
+//! - [`closer`]: the loop closer, in plain values: reference keeping, loop candidates, one
+//!   [`closer::Matcher`] per method (engineered, learned, oracle, zeroth), overlap stamps.
 //! - [`candidates`]: loop-candidate selection from the current estimate (or the ground truth,
 //!   the oracle association used for evaluation).
-//! - `node` (feature `node`, default): the `register` stage.
+//! - `node` (feature `node`, default): the `register` stage, which only moves messages.
 
 pub mod candidates;
+pub mod closer;
 pub mod engineered;
 pub mod front_end;
 pub mod learned;
