@@ -2,7 +2,7 @@
 //!
 //! The stage only moves messages: it decodes submaps and poses, hands them to the
 //! [`LoopCloser`] ([`crate::closer`]: reference keeping, loop candidates, the method's
-//! [`Matcher`](crate::closer::Matcher), overlap stamps) and sends its matches as
+//! [`crate::closer::Matcher`], overlap stamps) and sends its matches as
 //! [`Registration`]s. Every valid submap is put in ground order and kept as a reference (one
 //! every `reference_spacing_m` of travel). A new submap, the query, is placed in the
 //! association frame (the estimate, read as a feedback input, or the ground truth for the

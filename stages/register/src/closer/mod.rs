@@ -1,5 +1,5 @@
 //! The loop closer: submaps in, matches out (seed 000 §4.3-4.5), in plain values; the
-//! `register` stage ([`crate::node`]) only turns messages into [`SubmapIn`]s and poses, and
+//! `register` stage (module `node`) only turns messages into [`SubmapIn`]s and poses, and
 //! [`Match`]es into messages.
 //!
 //! Every valid submap is put in ground order ([`ground_order`]) and kept as a reference
