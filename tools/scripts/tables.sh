@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduces seed 000 Table 4.1 (registration error per model and environment, cm) and
 # Fig. 4.14 (ATE per environment for odometry, engineered, learned and oracle) on the
-# simulator's evaluation worlds, and writes both tables into README.md between the
+# simulator's evaluation worlds, and writes both tables into docs/localisation.md between the
 # `tables:begin` / `tables:end` markers. Table 4.1 comes from each world's run. Fig. 4.14 is
 # over several sequences per environment (15 in all in the thesis), so its table here is over
 # each world's run and its repeats 1..n (`gprflow sim --repeat`: fresh sensor noise and
@@ -17,9 +17,9 @@
 #   tools/scripts/tables.sh -n 0       # Fig. 4.14 from each world's run alone (5 minutes)
 #   tools/scripts/tables.sh --by-hand  # each world's `by_hand` run instead (the rig wanders
 #                                      # off its path, the soil dries): out/tables-by-hand,
-#                                      # README markers tables-by-hand:begin / :end
+#                                      # markers tables-by-hand:begin / :end
 #   tools/scripts/tables.sh --set stamps=overlap  # every localisation run with that graph
-#                                      # variable too: out/tables-stamps=overlap, README untouched
+#                                      # variable too: out/tables-stamps=overlap, docs untouched
 #   tools/scripts/tables.sh --set wheel_scale=1   # uncalibrated wheel (the odometry runs too)
 #   REUSE=1 tools/scripts/tables.sh      # keep the runs already in out/tables (their JSON)
 #   GPRFLOW=target/debug/gprflow tools/scripts/tables.sh   # with the test build
@@ -130,12 +130,12 @@ lines.append("| learned / oracle (of the means; per sequence) | " + " | ".join(c
 table = "\n".join(lines)
 print(table)
 if write:
-    readme = pathlib.Path("README.md")
+    readme = pathlib.Path("docs/localisation.md")
     text = readme.read_text()
     begin, end = f"<!-- {marker}:begin -->", f"<!-- {marker}:end -->"
     if begin not in text:
-        sys.exit(f"README.md has no {marker}:begin marker")
+        sys.exit(f"docs/localisation.md has no {marker}:begin marker")
     text = re.sub(re.escape(begin) + ".*?" + re.escape(end), begin + "\n" + table + "\n" + end, text, flags=re.S)
     readme.write_text(text)
-    print("README.md updated", file=sys.stderr)
+    print("docs/localisation.md updated", file=sys.stderr)
 EOF

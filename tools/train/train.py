@@ -680,7 +680,7 @@ def calibrate(args, scenarios):
 
 
 def stretch_search(sess, front, images, features, pairs, v, resolution_m, head, args):
-    """The register stage's travel-time stretch search (``stretch_steps``, README Localisation)
+    """The register stage's travel-time stretch search (``stretch_steps``, docs/localisation.md)
     on every pair: the query's rows stretched by each factor, and the correlation vector with
     the highest mean channel peak kept (the query stretched after standardising; the stage stretches
     it before, which differs only in the last rows, past the end of the image)."""
