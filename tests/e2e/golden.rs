@@ -173,22 +173,27 @@ fn golden_sets(graph: &str) -> Vec<String> {
     sets
 }
 
+/// The goldens each test reruns (all of recordings/golden/inputs.txt between them).
+const OUTPUTS: [&str; 4] = ["toy", "replay-toy", "odometry", "slam"];
+const LOCALISATION: &str = "localize";
+const SUBMAPS_AND_SWEEPS: [&str; 2] = ["submaps", "lgpr-sweeps"];
+
 #[test]
 fn golden_outputs_still_match() {
-    for graph in ["toy", "replay-toy", "odometry", "slam"] {
+    for graph in OUTPUTS {
         assert_reproduces_golden(graph, &golden_sets(graph));
     }
 }
 
 #[test]
 fn golden_localisation_still_matches() {
-    assert_reproduces_golden("localize", &golden_sets("localize"));
+    assert_reproduces_golden(LOCALISATION, &golden_sets(LOCALISATION));
 }
 
 #[test]
 fn golden_submaps_and_sweeps_still_match() {
     // short inputs and sparse submaps keep these goldens small (floats compress poorly)
-    for graph in ["submaps", "lgpr-sweeps"] {
+    for graph in SUBMAPS_AND_SWEEPS {
         assert_reproduces_golden(graph, &golden_sets(graph));
     }
 }

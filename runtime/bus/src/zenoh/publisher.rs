@@ -3,7 +3,7 @@
 
 use std::mem::MaybeUninit;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, PoisonError};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 use ::zenoh::Wait;
@@ -33,6 +33,14 @@ impl PubShared {
             .put(bytes)
             .wait()
             .map_err(|e| err(&self.topic, format!("zenoh put: {e}")))
+    }
+
+    /// Waits up to [`POLL`] for the window to change (an ack arrived).
+    fn wait_changed<'a>(&self, st: MutexGuard<'a, SendWindow<ZBytes>>) -> MutexGuard<'a, SendWindow<ZBytes>> {
+        self.changed
+            .wait_timeout(st, POLL)
+            .unwrap_or_else(PoisonError::into_inner)
+            .0
     }
 
     fn on_ack(&self, b: &[u8]) {
@@ -153,12 +161,7 @@ impl ZenohPublisher {
             if heard.elapsed() > self.link_timeout {
                 return Err(self.link_down(&st, heard));
             }
-            st = self
-                .shared
-                .changed
-                .wait_timeout(st, POLL)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
+            st = self.shared.wait_changed(st);
         }
         Ok(())
     }
@@ -219,12 +222,7 @@ impl Publisher for ZenohPublisher {
             if let Some(heard) = st.silent_for(Instant::now(), self.link_timeout) {
                 return Err(self.link_down(&st, heard));
             }
-            st = self
-                .shared
-                .changed
-                .wait_timeout(st, POLL)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
+            st = self.shared.wait_changed(st);
         }
         if st.gone() || !st.attached() {
             return Ok(0);
