@@ -3,7 +3,7 @@
 
 1. Crate graph: every workspace crate has a layer, and depends (normal and build
    dependencies) only on crates of lower layers, or, for stages, on other stages:
-       0 gprflow-geometry, gprflow-msg
+       0 gprflow-params, gprflow-geometry, gprflow-msg
        1 gprflow-bus
        2 gprflow-stage
        3 gprflow-record
@@ -26,6 +26,7 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 RUNTIME = {
+    "gprflow-params": 0,
     "gprflow-geometry": 0,
     "gprflow-msg": 0,
     "gprflow-bus": 1,

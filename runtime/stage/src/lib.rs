@@ -12,6 +12,8 @@ mod spec;
 
 pub use drops::Drops;
 
+/// The shared parameter checks ([`gprflow_params::positive`] ...), for `check_params`.
+pub use gprflow_params as params;
 pub use runtime::{
     Input, InputBinding, InputId, NodeSpec, Output, OutputBinding, Outputs, Ports, Produce, RunReport, StageError,
     bind_signals, run_node,
@@ -48,6 +50,17 @@ pub trait Stage: Sized {
     /// # Errors
     /// When the outputs cannot be determined from the parameters.
     fn outputs(params: &Self::Params) -> Result<Vec<PortSpec>, ParamError>;
+
+    /// Checks the parameters' values (finite, positive, in range, consistent), with the
+    /// shared checks of [`gprflow_params`]. `gprflow check` runs it, so a bad value is
+    /// reported at its line in the graph file before any process starts, and the runtime
+    /// runs it before [`create`](Stage::create).
+    ///
+    /// # Errors
+    /// The first bad value, naming its key.
+    fn check_params(_params: &Self::Params) -> Result<(), ParamError> {
+        Ok(())
+    }
 
     /// Builds the stage; looks up its ports in `ports`.
     ///
@@ -112,6 +125,6 @@ impl<S: Stage> StageInfo for Described<S> {
         schemars::schema_for!(S::Params)
     }
     fn check_params(&self, params: &serde_json::Value) -> Result<(), ParamError> {
-        parse_params::<S::Params>(params).map(|_| ())
+        S::check_params(&parse_params::<S::Params>(params)?)
     }
 }

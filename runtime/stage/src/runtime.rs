@@ -511,6 +511,7 @@ pub fn run_node<S: Stage>(
 ) -> Result<RunReport, StageError> {
     let started = Instant::now();
     let params = parse_params::<S::Params>(&spec.params)?;
+    S::check_params(&params)?;
     let stopped = || stop.load(Ordering::Relaxed);
 
     // Subscribers first, so that every publisher of the run finds its consumers.

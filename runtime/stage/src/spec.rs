@@ -3,6 +3,8 @@
 
 use std::fmt;
 
+pub use gprflow_params::ParamError;
+
 /// One input or output port: a name and a message type (`gprflow_msgs/msg/Trace`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PortSpec {
@@ -40,27 +42,6 @@ pub struct InputSpec {
     pub optional: bool,
 }
 
-/// A parameter error: the path of the offending key inside `params` and what is wrong.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ParamError {
-    /// Keys from `params` down to the offending one (empty for the whole map).
-    pub path: Vec<String>,
-    /// What is wrong, in words.
-    pub message: String,
-}
-
-impl fmt::Display for ParamError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        if self.path.is_empty() {
-            write!(f, "{}", self.message)
-        } else {
-            write!(f, "{}: {}", self.path.join("."), self.message)
-        }
-    }
-}
-
-impl std::error::Error for ParamError {}
-
 /// What the graph checker and the launcher need to know about a stage kind.
 /// Implemented for every [`Stage`](super::Stage) by [`describe`](super::describe).
 pub trait StageInfo: Send + Sync {
@@ -78,7 +59,8 @@ pub trait StageInfo: Send + Sync {
     fn outputs(&self, params: &serde_json::Value) -> Result<Vec<PortSpec>, ParamError>;
     /// JSON schema of the `params` map.
     fn params_schema(&self) -> schemars::Schema;
-    /// Checks `params` by deserialising them into the stage's typed `Params`.
+    /// Checks `params` by deserialising them into the stage's typed `Params` and checking
+    /// their values ([`Stage::check_params`](super::Stage::check_params)).
     ///
     /// # Errors
     /// The first problem found, with the path of the key.

@@ -12,7 +12,9 @@
 use serde::Deserialize;
 
 use crate::trace::{check_len, param, reflect_index};
-use crate::{Error, Result};
+use gprflow_params as params;
+
+use crate::{Error, ParamError, Result};
 
 /// The size of an image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -369,6 +371,14 @@ impl Default for WaveletDenoiseParams {
     }
 }
 
+impl WaveletDenoiseParams {
+    /// Checks `levels >= 1` when given.
+    pub fn check(&self) -> params::Result {
+        self.levels
+            .map_or(Ok(()), |levels| params::at_least("wavelet.levels", levels, 1))
+    }
+}
+
 /// What [`denoise_wavelet`] estimated.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WaveletDenoiseSummary {
@@ -405,8 +415,8 @@ pub fn denoise_wavelet(
     }
     check_finite("image", image)?;
     let wavelet = params.wavelet;
+    params.check()?;
     let levels = match params.levels {
-        Some(0) => return Err(param("wavelet.levels", "must be >= 1, got 0".to_owned())),
         Some(levels) => levels,
         None => {
             let max = dwt_max_level(shape.rows.min(shape.cols), wavelet.filter_len());
@@ -485,19 +495,34 @@ impl Default for GaussianParams {
     }
 }
 
+impl GaussianParams {
+    /// Checks both kernels ([`gaussian_kernel`]'s conditions), keys under `gaussian.`.
+    pub fn check(&self) -> params::Result {
+        check_kernel("sigma_along_track_px", self.sigma_along_track_px, self.truncate)
+            .map_err(|e| e.within("gaussian"))?;
+        self.sigma_depth_px.map_or(Ok(()), |sigma| {
+            check_kernel("sigma_depth_px", sigma, self.truncate).map_err(|e| e.within("gaussian"))
+        })
+    }
+}
+
+/// `σ > 0` and `truncate >= 0` finite, with a radius below 1e6 px.
+fn check_kernel(sigma_key: &str, sigma_px: f64, truncate: f64) -> params::Result {
+    params::positive(sigma_key, sigma_px)?;
+    if !(truncate.is_finite() && truncate >= 0.0 && truncate * sigma_px < 1e6) {
+        return Err(ParamError::new(
+            "truncate",
+            format!("must be >= 0 with a radius below 1e6 px, got {truncate}"),
+        ));
+    }
+    Ok(())
+}
+
 /// The normalised kernel of `scipy.ndimage.gaussian_filter1d`: radius
 /// `r = floor(truncate · σ + 0.5)`, `w[k] = exp(-k² / (2σ²)) / Σ_j exp(-j² / (2σ²))`,
 /// `k = -r..=r`. Errors unless `σ > 0` and `truncate >= 0` are finite.
 pub fn gaussian_kernel(sigma_px: f64, truncate: f64) -> Result<Vec<f64>> {
-    if !(sigma_px.is_finite() && sigma_px > 0.0) {
-        return Err(param("gaussian.sigma", format!("must be positive, got {sigma_px}")));
-    }
-    if !(truncate.is_finite() && truncate >= 0.0 && truncate * sigma_px < 1e6) {
-        return Err(param(
-            "gaussian.truncate",
-            format!("must be >= 0 with a radius below 1e6 px, got {truncate}"),
-        ));
-    }
+    check_kernel("sigma", sigma_px, truncate).map_err(|e| e.within("gaussian"))?;
     let radius = (truncate * sigma_px + 0.5).floor() as isize;
     let w: Vec<f64> = (-radius..=radius)
         .map(|k| (-0.5 * (k * k) as f64 / (sigma_px * sigma_px)).exp())

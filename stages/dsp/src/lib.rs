@@ -23,17 +23,15 @@ pub mod node;
 pub mod trace;
 pub mod window;
 
+pub use gprflow_params::ParamError;
+
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// A parameter is out of range; `key` names it as in the graph file.
-    #[error("{key}: {message}")]
-    Param {
-        /// Parameter name (dotted path, e.g. `bandpass.taps`).
-        key: String,
-        /// What is wrong and what was given.
-        message: String,
-    },
+    /// A parameter is out of range; its path names it as in the graph file
+    /// (`bandpass.taps`).
+    #[error(transparent)]
+    Param(#[from] ParamError),
     /// An input has the wrong length.
     #[error("{what}: expected {expected} values, got {got}")]
     Size {

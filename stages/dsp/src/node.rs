@@ -15,16 +15,6 @@ use crate::trace::{BandpassParams, DewowParams, SecGainParams, StackParams, Zero
 use crate::window::{BackgroundModel, subtract_window_mean};
 use crate::{Error, Result};
 
-fn param_error(e: Error) -> StageError {
-    match e {
-        Error::Param { key, message } => StageError::Params(ParamError {
-            path: key.split('.').map(str::to_owned).collect(),
-            message,
-        }),
-        other => StageError::failed(other),
-    }
-}
-
 fn single_input(name: &str, ty: &str) -> InputPorts {
     InputPorts::Fixed(vec![InputSpec {
         port: PortSpec::new(name, ty),
@@ -99,18 +89,19 @@ pub struct DspStage {
 impl DspStage {
     fn build(&mut self, t: &Trace<'_>) -> std::result::Result<(), StageError> {
         if self.params.hold_first_samples >= t.len() {
-            return Err(param_error(Error::Param {
-                key: "hold_first_samples".into(),
-                message: format!(
+            return Err(ParamError::new(
+                "hold_first_samples",
+                format!(
                     "{} is not below the first trace's {} samples",
                     self.params.hold_first_samples,
                     t.len()
                 ),
-            }));
+            )
+            .into());
         }
         let fc = self.params.center_frequency_hz.unwrap_or(t.center_frequency_hz);
         let chain = TraceChain::new(&self.params.chain(), t.len(), t.sample_interval_ns, fc).map_err(|e| match e {
-            e @ Error::Param { .. } => param_error(e),
+            Error::Param(e) => StageError::Params(e),
             other => StageError::failed(format!(
                 "the first trace ({} samples, {} ns, centre frequency {fc} Hz) does not suit the chain: {other}",
                 t.len(),
@@ -143,18 +134,16 @@ impl Stage for DspStage {
         Ok(vec![PortSpec::new("trace", Trace::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> std::result::Result<(), ParamError> {
+        gprflow_params::optional(
+            "center_frequency_hz",
+            params.center_frequency_hz,
+            gprflow_params::positive,
+        )?;
+        params.chain().check()
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
-        if let Some(fc) = params.center_frequency_hz
-            && !(fc.is_finite() && fc > 0.0)
-        {
-            return Err(param_error(Error::Param {
-                key: "center_frequency_hz".into(),
-                message: format!("must be finite and > 0, got {fc}"),
-            }));
-        }
-        if let Some(z) = &params.zero_time {
-            z.validate().map_err(param_error)?;
-        }
         Ok(Self {
             params,
             chain: None,
@@ -328,11 +317,12 @@ impl Stage for DspSubmapStage {
         Ok(vec![PortSpec::new("submap", Submap::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> std::result::Result<(), ParamError> {
+        params.wavelet.as_ref().map_or(Ok(()), WaveletDenoiseParams::check)?;
+        params.gaussian.as_ref().map_or(Ok(()), GaussianParams::check)
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
-        if let Some(g) = &params.gaussian {
-            crate::image::gaussian_kernel(g.sigma_along_track_px, g.truncate)
-                .map_err(|e| param_error(prefix("gaussian", e)))?;
-        }
         Ok(Self {
             params,
             background: None,
@@ -377,16 +367,5 @@ impl Stage for DspSubmapStage {
     fn finish(&mut self, _out: &mut Outputs) -> std::result::Result<(), StageError> {
         self.drops.report(Self::NAME);
         Ok(())
-    }
-}
-
-/// `key` prefixed with `section.` for errors of a nested parameter block.
-fn prefix(section: &str, e: Error) -> Error {
-    match e {
-        Error::Param { key, message } => Error::Param {
-            key: format!("{section}.{key}"),
-            message,
-        },
-        other => other,
     }
 }

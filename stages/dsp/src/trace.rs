@@ -11,7 +11,9 @@
 
 use serde::Deserialize;
 
-use crate::{Error, Result};
+use gprflow_params as params;
+
+use crate::{Error, ParamError, Result};
 
 /// The shape of the traces of one radar channel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -74,10 +76,7 @@ impl TraceFormat {
 }
 
 pub(crate) fn param(key: &str, message: String) -> Error {
-    Error::Param {
-        key: key.to_owned(),
-        message,
-    }
+    Error::Param(ParamError::new(key, message))
 }
 
 pub(crate) fn check_len(what: &str, expected: usize, got: usize) -> Result<()> {
@@ -126,6 +125,13 @@ impl Default for DewowParams {
     }
 }
 
+impl DewowParams {
+    /// Checks what does not depend on the trace format: a positive window.
+    pub fn check(&self) -> params::Result {
+        params::positive("dewow.window_periods", self.window_periods)
+    }
+}
+
 /// The dewow filter of one trace format (see [`Dewow::apply`]).
 #[derive(Clone, Debug)]
 pub struct Dewow {
@@ -139,6 +145,7 @@ pub struct Dewow {
 impl Dewow {
     /// Builds the filter; errors if the window is shorter than 3 samples or not finite.
     pub fn new(params: &DewowParams, format: &TraceFormat) -> Result<Self> {
+        params.check()?;
         format.validate()?;
         let samples_per_period = 1e9 / (format.center_frequency_hz * format.sample_interval_ns);
         let raw = params.window_periods * samples_per_period;
@@ -214,15 +221,8 @@ impl Default for ZeroTimeParams {
 
 impl ZeroTimeParams {
     /// Checks `0 < threshold <= 1`.
-    pub fn validate(&self) -> Result<()> {
-        if self.threshold > 0.0 && self.threshold <= 1.0 {
-            Ok(())
-        } else {
-            Err(param(
-                "zero_time.threshold",
-                format!("must be in (0, 1], got {}", self.threshold),
-            ))
-        }
+    pub fn check(&self) -> params::Result {
+        params::fraction("zero_time.threshold", self.threshold)
     }
 }
 
@@ -286,6 +286,31 @@ impl Default for BandpassParams {
             low_cutoff_ratio: 0.5,
             high_cutoff_ratio: 2.0,
         }
+    }
+}
+
+impl BandpassParams {
+    /// Checks what does not depend on the trace format: odd taps >= 3 and
+    /// `0 < low_cutoff_ratio < high_cutoff_ratio` (the Nyquist bound needs the format).
+    pub fn check(&self) -> params::Result {
+        if self.taps < 3 || self.taps.is_multiple_of(2) {
+            return Err(ParamError::new(
+                "bandpass.taps",
+                format!("must be odd and >= 3, got {}", self.taps),
+            ));
+        }
+        params::positive("bandpass.low_cutoff_ratio", self.low_cutoff_ratio)?;
+        params::finite("bandpass.high_cutoff_ratio", self.high_cutoff_ratio)?;
+        if self.high_cutoff_ratio <= self.low_cutoff_ratio {
+            return Err(ParamError::new(
+                "bandpass.high_cutoff_ratio",
+                format!(
+                    "must be above low_cutoff_ratio {}, got {}",
+                    self.low_cutoff_ratio, self.high_cutoff_ratio
+                ),
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -357,6 +382,7 @@ impl Bandpass {
     /// Designs the taps ([`firwin_bandpass`] with the cut-offs `ratio · fc`) for this format;
     /// errors if `3 · taps >= samples` (scipy's filtfilt refuses it too).
     pub fn new(params: &BandpassParams, format: &TraceFormat) -> Result<Self> {
+        params.check()?;
         format.validate()?;
         let fc = format.center_frequency_hz;
         let taps = firwin_bandpass(
@@ -501,6 +527,14 @@ impl Default for SecGainParams {
     }
 }
 
+impl SecGainParams {
+    /// Checks `a` finite and `b` finite and >= 0 (`k^b` at `k = 0`).
+    pub fn check(&self) -> params::Result {
+        params::finite("sec_gain.a", self.a)?;
+        params::non_negative("sec_gain.b", self.b)
+    }
+}
+
 /// The precomputed SEC gain vector of one trace length (see [`SecGain::new`]).
 #[derive(Clone, Debug)]
 pub struct SecGain {
@@ -512,15 +546,7 @@ impl SecGain {
     /// `k = 0..samples` (so `G(0) = 0` when `b > 0`, `1` when `b = 0`). Errors if `b < 0` or
     /// `a` is not finite, or a gain overflows f32.
     pub fn new(params: &SecGainParams, samples: usize) -> Result<Self> {
-        if !(params.b >= 0.0 && params.b.is_finite()) {
-            return Err(param(
-                "sec_gain.b",
-                format!("must be finite and >= 0 (k^b at k = 0), got {}", params.b),
-            ));
-        }
-        if !params.a.is_finite() {
-            return Err(param("sec_gain.a", format!("must be finite, got {}", params.a)));
-        }
+        params.check()?;
         let g = |k: usize| (params.a * k as f64).exp() * (k as f64).powf(params.b);
         let gain: Vec<f32> = (0..samples).map(|k| g(k.min(params.threshold)) as f32).collect();
         if let Some(k) = gain.iter().position(|v| !v.is_finite()) {
@@ -563,6 +589,13 @@ impl Default for StackParams {
     }
 }
 
+impl StackParams {
+    /// Checks `traces >= 1`.
+    pub fn check(&self) -> params::Result {
+        params::at_least("stack.traces", self.traces, 1)
+    }
+}
+
 /// Averages every `N` consecutive traces: `y = (1/N) Σ_{i=1}^{N} x_i` (sums in f64).
 #[derive(Clone, Debug)]
 pub struct Stacker {
@@ -575,9 +608,7 @@ pub struct Stacker {
 impl Stacker {
     /// Errors if `traces == 0`.
     pub fn new(params: &StackParams, samples: usize) -> Result<Self> {
-        if params.traces == 0 {
-            return Err(param("stack.traces", "must be >= 1, got 0".to_owned()));
-        }
+        params.check()?;
         Ok(Self {
             traces: params.traces,
             count: 0,
@@ -628,6 +659,13 @@ impl Default for DistanceStackParams {
     }
 }
 
+impl DistanceStackParams {
+    /// Checks a positive, finite bin.
+    pub fn check(&self) -> params::Result {
+        params::positive("stack.bin_m", self.bin_m)
+    }
+}
+
 /// A finished distance bin.
 #[derive(Clone, Copy, Debug)]
 pub struct DistanceStack<'a> {
@@ -657,12 +695,7 @@ pub struct DistanceStacker {
 impl DistanceStacker {
     /// Errors unless `bin_m` is positive and finite.
     pub fn new(params: &DistanceStackParams, samples: usize) -> Result<Self> {
-        if !(params.bin_m.is_finite() && params.bin_m > 0.0) {
-            return Err(param(
-                "stack.bin_m",
-                format!("must be positive and finite, got {}", params.bin_m),
-            ));
-        }
+        params.check()?;
         Ok(Self {
             bin_m: params.bin_m,
             bin: 0,

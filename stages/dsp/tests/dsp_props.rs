@@ -38,7 +38,7 @@ proptest! {
                     Err(e) => prop_assert!(false, "unexpected {e}"),
                 }
             }
-            Err(Error::Param { .. }) => {}
+            Err(Error::Param(_)) => {}
             Err(e) => prop_assert!(false, "unexpected {e}"),
         }
     }

@@ -2,6 +2,8 @@
 
 use std::fmt;
 
+pub use gprflow_params::ParamError;
+
 /// Where in a sweep a bad tone sits: a measurement channel, or the calibration channel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ToneIndex {
@@ -23,14 +25,10 @@ impl fmt::Display for ToneIndex {
 /// What can go wrong in this crate.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Error {
-    /// A parameter is out of range; `key` names it as in the graph file.
-    #[error("{key}: {message}")]
-    Param {
-        /// Parameter name (dotted path, e.g. `range_gain.reference_ns`).
-        key: &'static str,
-        /// What is wrong and what was given.
-        message: String,
-    },
+    /// A parameter is out of range; its path names it as in the graph file
+    /// (`range_gain.reference_ns`).
+    #[error(transparent)]
+    Param(#[from] ParamError),
     /// An input has the wrong length.
     #[error("{what}: expected {expected} values, got {got}")]
     Size {
@@ -88,3 +86,8 @@ pub enum Error {
 
 /// Result of this crate.
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// A [`Error::Param`] at `key`.
+pub(crate) fn param(key: &str, message: impl Into<String>) -> Error {
+    Error::Param(ParamError::new(key, message))
+}

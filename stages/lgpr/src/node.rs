@@ -31,16 +31,6 @@ pub struct LgprDspStage {
     before_factory: u64,
 }
 
-fn stage_param_error(e: Error) -> StageError {
-    match e {
-        Error::Param { key, message } => StageError::Params(ParamError {
-            path: key.split('.').map(str::to_owned).collect(),
-            message,
-        }),
-        other => StageError::failed(other),
-    }
-}
-
 impl LgprDspStage {
     /// The distance at `stamp_ns`: the last wheel distance advanced at its speed.
     fn distance_at(&self, stamp_ns: i64) -> Option<f64> {
@@ -146,9 +136,17 @@ impl Stage for LgprDspStage {
         Ok(vec![PortSpec::new("sweep", Sweep::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        // every parameter checked before the start, not at the first sweep (a typical 11 x 51
+        // array)
+        match SfcwChain::new(params.clone(), 11, 51, 100e6, 6e6, None) {
+            Ok(_) => Ok(()),
+            Err(Error::Param(e)) => Err(e),
+            Err(other) => Err(ParamError::new("", other.to_string())),
+        }
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        // every parameter checked now, not at the first sweep (a typical 11 x 51 array)
-        SfcwChain::new(params.clone(), 11, 51, 100e6, 6e6, None).map_err(stage_param_error)?;
         Ok(Self {
             params,
             chain: None,

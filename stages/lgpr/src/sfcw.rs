@@ -102,12 +102,7 @@ pub fn tone_weights(
     frequency_step_hz: f64,
     params: &SfcwParams,
 ) -> Result<Vec<Complex64>> {
-    if !params.delay_ns.is_finite() {
-        return Err(Error::Param {
-            key: "delay_ns",
-            message: format!("must be finite, got {}", params.delay_ns),
-        });
-    }
+    gprflow_params::finite("delay_ns", params.delay_ns)?;
     let window = chebyshev_window(bins, params.window_attenuation_db)?;
     let sum: f64 = window.iter().sum();
     let delay_s = params.delay_ns * 1e-9;
@@ -160,10 +155,10 @@ impl SfcwChain {
         factory: Option<FactoryCalibration>,
     ) -> Result<Self> {
         if !(1..=MAX_CHANNELS).contains(&channels) {
-            return Err(Error::Param {
-                key: "channel_count",
-                message: format!("a sweep needs 1..={MAX_CHANNELS} channels, got {channels}"),
-            });
+            return Err(crate::error::param(
+                "channel_count",
+                format!("a sweep needs 1..={MAX_CHANNELS} channels, got {channels}"),
+            ));
         }
         let transform = InverseTransform::new(
             bins,
@@ -175,14 +170,14 @@ impl SfcwChain {
         let weights = tone_weights(bins, start_frequency_hz, frequency_step_hz, &params)?;
         let (coefficients, offsets) = match &factory {
             Some(f) if (f.channels(), f.bins()) != (channels, bins) => {
-                return Err(Error::Param {
-                    key: "factory",
-                    message: format!(
+                return Err(crate::error::param(
+                    "factory",
+                    format!(
                         "the factory calibration has {} channels x {} tones, the sweeps {channels} x {bins}",
                         f.channels(),
                         f.bins()
                     ),
-                });
+                ));
             }
             Some(f) => (
                 f.ratio()

@@ -346,9 +346,9 @@ fn bad_sweeps_are_errors_that_name_the_place_and_leave_the_chain_unchanged() {
     assert_eq!(out, reference);
 }
 
-fn param_key(result: Result<SfcwChain>) -> &'static str {
+fn param_key(result: Result<SfcwChain>) -> String {
     match result {
-        Err(Error::Param { key, .. }) => key,
+        Err(Error::Param(e)) => e.key(),
         other => panic!("expected a parameter error, got {other:?}"),
     }
 }

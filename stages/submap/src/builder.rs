@@ -126,7 +126,7 @@ impl SubmapBuilder {
     /// # Errors
     /// [`Error::Param`] naming the bad field.
     pub fn new(params: SubmapParams) -> Result<Self> {
-        params.validate()?;
+        params.check()?;
         Ok(Self {
             cols: params.cols(),
             next_emit_travel_m: params.length_m,

@@ -34,17 +34,14 @@ pub use builder::{Submap, SubmapBuilder, SubmapStats};
 pub use gprflow_dsp::image::saliency;
 pub use odometry::PlanarOdometry;
 
+pub use gprflow_params::ParamError;
+
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// A parameter is out of range; `key` names it as in the graph file.
-    #[error("{key}: {message}")]
-    Param {
-        /// Parameter name.
-        key: String,
-        /// What is wrong and what was given.
-        message: String,
-    },
+    /// A parameter is out of range; its path names it as in the graph file.
+    #[error(transparent)]
+    Param(#[from] ParamError),
     /// A measurement is unusable (non-finite, wrong length, stamp going backwards); it was not used.
     #[error("{0}")]
     BadMeasurement(String),
@@ -117,8 +114,8 @@ impl SubmapParams {
     /// Checks every field.
     ///
     /// # Errors
-    /// [`Error::Param`] naming the first bad field.
-    pub fn validate(&self) -> Result<()> {
+    /// A [`ParamError`] naming the first bad field.
+    pub fn check(&self) -> gprflow_params::Result {
         let positive = [
             ("length_m", self.length_m),
             ("resolution_m", self.resolution_m),
@@ -128,22 +125,17 @@ impl SubmapParams {
             ("validity.max_gap_m", self.validity.max_gap_m),
         ];
         for (key, v) in positive {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::Param {
-                    key: key.into(),
-                    message: format!("must be finite and > 0, got {v}"),
-                });
-            }
+            gprflow_params::positive(key, v)?;
         }
         let cols = self.length_m / self.resolution_m;
         if !(2.0..=100_000.0).contains(&cols) {
-            return Err(Error::Param {
-                key: "length_m".into(),
-                message: format!(
+            return Err(ParamError::new(
+                "length_m",
+                format!(
                     "length_m / resolution_m must give 2 to 100000 columns, got {cols:.1} ({} / {})",
                     self.length_m, self.resolution_m
                 ),
-            });
+            ));
         }
         Ok(())
     }
@@ -211,27 +203,17 @@ mod tests {
 
     #[test]
     fn params_are_checked_with_the_key_named() {
-        assert!(SubmapParams::default().validate().is_ok());
+        assert!(SubmapParams::default().check().is_ok());
         assert_eq!(SubmapParams::default().cols(), 200);
         let bad = SubmapParams {
             spacing_m: f64::NAN,
             ..SubmapParams::default()
         };
-        assert!(
-            bad.validate()
-                .expect_err("refused")
-                .to_string()
-                .starts_with("spacing_m:")
-        );
+        assert!(bad.check().expect_err("refused").to_string().starts_with("spacing_m:"));
         let tiny = SubmapParams {
             length_m: 0.01,
             ..SubmapParams::default()
         };
-        assert!(
-            tiny.validate()
-                .expect_err("refused")
-                .to_string()
-                .starts_with("length_m:")
-        );
+        assert!(tiny.check().expect_err("refused").to_string().starts_with("length_m:"));
     }
 }

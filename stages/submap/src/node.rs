@@ -106,14 +106,12 @@ impl Stage for SubmapStage {
         Ok(vec![PortSpec::new("submap", SubmapMsg::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        params.check()
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        let builder = SubmapBuilder::new(params).map_err(|e| match e {
-            Error::Param { key, message } => StageError::Params(ParamError {
-                path: key.split('.').map(str::to_owned).collect(),
-                message,
-            }),
-            other => StageError::failed(other),
-        })?;
+        let builder = SubmapBuilder::new(params).map_err(StageError::failed)?;
         if ports.input("imu").is_none() {
             tracing::info!("submap: no imu input: the validity rule checks the encoder only, poses keep heading 0");
         }

@@ -31,12 +31,7 @@ impl DistanceHighPass {
     ///
     /// Errors: `half_distance_m` not finite and positive (key `iir_distance_m`).
     pub fn new(len: usize, half_distance_m: f64) -> Result<Self> {
-        if !(half_distance_m.is_finite() && half_distance_m > 0.0) {
-            return Err(Error::Param {
-                key: "iir_distance_m",
-                message: format!("must be finite and > 0 m, got {half_distance_m}"),
-            });
-        }
+        gprflow_params::positive("iir_distance_m", half_distance_m)?;
         Ok(Self {
             half_distance_m,
             mean: vec![0.0; len],

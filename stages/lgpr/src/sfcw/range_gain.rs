@@ -3,7 +3,7 @@
 
 use serde::Deserialize;
 
-use crate::error::{Error, Result};
+use crate::error::Result;
 
 /// Parameters of the range gain `G(t) = (max(t, t_ref) / t_ref)^p * 10^(alpha max(t, 0) / 20)`,
 /// with `t` the two-way time since the antenna (sample time minus the chain's `delay_ns`).
@@ -45,20 +45,9 @@ impl RangeGain {
     /// Errors (`Param`, naming the key): a non-finite or negative exponent or attenuation, a
     /// reference time that is not finite and positive, or a gain that overflows `f64`.
     pub fn new(params: &RangeGainParams, time_zero_ns: f64, sample_interval_ns: f64, samples: usize) -> Result<Self> {
-        let check = |key, value: f64, positive: bool| {
-            if value.is_finite() && (value > 0.0 || (!positive && value == 0.0)) {
-                Ok(())
-            } else {
-                let bound = if positive { "> 0" } else { ">= 0" };
-                Err(Error::Param {
-                    key,
-                    message: format!("must be finite and {bound}, got {value}"),
-                })
-            }
-        };
-        check("range_gain.spreading_exponent", params.spreading_exponent, false)?;
-        check("range_gain.reference_ns", params.reference_ns, true)?;
-        check("range_gain.attenuation_db_per_ns", params.attenuation_db_per_ns, false)?;
+        gprflow_params::non_negative("range_gain.spreading_exponent", params.spreading_exponent)?;
+        gprflow_params::positive("range_gain.reference_ns", params.reference_ns)?;
+        gprflow_params::non_negative("range_gain.attenuation_db_per_ns", params.attenuation_db_per_ns)?;
         let gains: Vec<f64> = (0..samples)
             .map(|n| {
                 let t_ns = n as f64 * sample_interval_ns - time_zero_ns;
@@ -67,10 +56,10 @@ impl RangeGain {
             })
             .collect();
         if let Some(g) = gains.iter().find(|g| !g.is_finite()) {
-            return Err(Error::Param {
-                key: "range_gain",
-                message: format!("the gain reaches {g} within the kept samples"),
-            });
+            return Err(crate::error::param(
+                "range_gain",
+                format!("the gain reaches {g} within the kept samples"),
+            ));
         }
         Ok(Self { gains })
     }

@@ -60,7 +60,7 @@ impl InverseTransform {
         time_samples: usize,
         keep_samples: usize,
     ) -> Result<Self> {
-        let param = |key, message: String| Err(Error::Param { key, message });
+        let param = |key, message: String| Err(crate::error::param(key, message));
         if bins == 0 {
             return param("bin_count", "a sweep needs at least one tone".into());
         }

@@ -3,7 +3,7 @@
 
 use std::f64::consts::PI;
 
-use crate::error::{Error, Result};
+use crate::error::Result;
 
 /// Largest side-lobe attenuation accepted, dB (beyond it `10^(dB/20)` leaves `f64` range
 /// for the Chebyshev polynomial of long windows).
@@ -38,16 +38,16 @@ fn chebyshev_polynomial(order: f64, parity_odd: bool, x: f64) -> f64 {
 /// `(0, MAX_WINDOW_ATTENUATION_DB]` (key `window_attenuation_db`).
 pub fn chebyshev_window(len: usize, attenuation_db: f64) -> Result<Vec<f64>> {
     if !(attenuation_db > 0.0 && attenuation_db <= MAX_WINDOW_ATTENUATION_DB) {
-        return Err(Error::Param {
-            key: "window_attenuation_db",
-            message: format!("must be in (0, {MAX_WINDOW_ATTENUATION_DB}] dB, got {attenuation_db}"),
-        });
+        return Err(crate::error::param(
+            "window_attenuation_db",
+            format!("must be in (0, {MAX_WINDOW_ATTENUATION_DB}] dB, got {attenuation_db}"),
+        ));
     }
     if !(1..=MAX_WINDOW_LEN).contains(&len) {
-        return Err(Error::Param {
-            key: "bin_count",
-            message: format!("the window over the tones needs 1..={MAX_WINDOW_LEN} taps, got {len}"),
-        });
+        return Err(crate::error::param(
+            "bin_count",
+            format!("the window over the tones needs 1..={MAX_WINDOW_LEN} taps, got {len}"),
+        ));
     }
     match len {
         1 => Ok(vec![1.0]),
