@@ -11,7 +11,7 @@
 
 use gprflow_geometry::{Planar, Track};
 
-use crate::{Error, Result, positive};
+use gprflow_params::positive;
 
 /// Where a submap sits: its ground-order column 0. A submap driven forwards starts there (its
 /// oldest trace); one driven backwards ends there (its newest trace).
@@ -75,18 +75,12 @@ impl Default for CandidateGates {
 impl CandidateGates {
     /// # Errors
     /// A gate that is not a positive finite number (`per_query` at least 1).
-    pub fn check(&self) -> Result<()> {
+    pub fn check(&self) -> gprflow_params::Result {
         positive("candidates.max_along_m", self.max_along_m)?;
         positive("candidates.max_cross_m", self.max_cross_m)?;
         positive("candidates.max_heading_deg", self.max_heading_deg)?;
         positive("candidates.min_separation_s", self.min_separation_s)?;
-        if self.per_query == 0 {
-            return Err(Error::Param {
-                key: "candidates.per_query",
-                message: "must be at least 1".into(),
-            });
-        }
-        Ok(())
+        gprflow_params::at_least("candidates.per_query", self.per_query, 1)
     }
 }
 

@@ -23,17 +23,14 @@ pub mod learned;
 pub mod node;
 pub mod stretch;
 
+pub use gprflow_params::ParamError;
+
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// A parameter is out of range; `key` names it.
-    #[error("{key}: {message}")]
-    Param {
-        /// Parameter name.
-        key: &'static str,
-        /// What is wrong and what was given.
-        message: String,
-    },
+    /// A parameter is out of range; its path names it as in the graph file.
+    #[error(transparent)]
+    Param(#[from] ParamError),
     /// Two submaps cannot be compared (different shapes, wrong pixel count).
     #[error("{0}")]
     Shape(String),
@@ -91,31 +88,13 @@ pub enum Error {
 /// Result of this crate.
 pub type Result<T> = std::result::Result<T, Error>;
 
-/// `Ok` when parameter `key` is a positive finite number.
-pub(crate) fn positive(key: &'static str, v: f64) -> Result<()> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(Error::Param {
-            key,
-            message: format!("must be a positive number, got {v}"),
-        })
-    }
+/// A [`Error::Param`] at `key`.
+pub(crate) fn param(key: &str, message: impl Into<String>) -> Error {
+    Error::Param(ParamError::new(key, message))
 }
 
 /// `Ok` when a shift search is valid: `max_shift_m` finite and >= 0, `min_overlap` in (0, 1].
-pub(crate) fn check_shift_search(max_shift_m: f64, min_overlap: f64) -> Result<()> {
-    if !(max_shift_m.is_finite() && max_shift_m >= 0.0) {
-        return Err(Error::Param {
-            key: "max_shift_m",
-            message: format!("must be finite and >= 0, got {max_shift_m}"),
-        });
-    }
-    if !(min_overlap > 0.0 && min_overlap <= 1.0) {
-        return Err(Error::Param {
-            key: "min_overlap",
-            message: format!("must be in (0, 1], got {min_overlap}"),
-        });
-    }
-    Ok(())
+pub(crate) fn check_shift_search(max_shift_m: f64, min_overlap: f64) -> gprflow_params::Result {
+    gprflow_params::non_negative("max_shift_m", max_shift_m)?;
+    gprflow_params::fraction("min_overlap", min_overlap)
 }

@@ -6,8 +6,8 @@
 //! surface (row 0). The stage tries the query at a few such stretches and keeps the one whose
 //! features share most with the reference (README, "Localisation").
 
+use crate::Result;
 use crate::engineered::SubmapView;
-use crate::{Error, Result};
 
 /// Largest relative stretch accepted (`|factor - 1|`): beyond it a submap's lower rows would
 /// come from outside the image for most of its depth.
@@ -17,22 +17,30 @@ pub const MAX_STRETCH: f64 = 0.25;
 /// `steps` is 0).
 ///
 /// # Errors
-/// [`Error::Param`] (`stretch_step`) when `step` is not positive and finite or a factor falls
-/// outside `1 +- MAX_STRETCH`.
+/// [`Error::Param`] (`stretch_step`) as [`check_factors`].
 pub fn factors(step: f64, steps: usize) -> Result<Vec<f64>> {
     if steps == 0 {
         return Ok(vec![1.0]);
     }
-    if !(step.is_finite() && step > 0.0 && step * steps as f64 <= MAX_STRETCH) {
-        return Err(Error::Param {
-            key: "stretch_step",
-            message: format!(
-                "must be positive with stretch_steps x stretch_step <= {MAX_STRETCH}, got {step} x {steps}"
-            ),
-        });
-    }
+    check_factors(step, steps)?;
     let n = steps as i64;
     Ok((-n..=n).map(|k| 1.0 + k as f64 * step).collect())
+}
+
+/// `Ok` when `steps` is 0 (no search), or `step` is positive and finite and every factor
+/// lies within `1 +- MAX_STRETCH`.
+///
+/// # Errors
+/// A [`gprflow_params::ParamError`] at `stretch_step` otherwise.
+pub fn check_factors(step: f64, steps: usize) -> gprflow_params::Result {
+    if steps == 0 || (step.is_finite() && step > 0.0 && step * steps as f64 <= MAX_STRETCH) {
+        Ok(())
+    } else {
+        Err(gprflow_params::ParamError::new(
+            "stretch_step",
+            format!("must be positive with stretch_steps x stretch_step <= {MAX_STRETCH}, got {step} x {steps}"),
+        ))
+    }
 }
 
 /// `submap`'s rows resampled so that row `r` holds what the submap has at row `r * factor`
@@ -46,10 +54,10 @@ pub fn factors(step: f64, steps: usize) -> Result<Vec<f64>> {
 pub fn stretch_rows(submap: &SubmapView<'_>, factor: f64, out: &mut Vec<f32>) -> Result<()> {
     submap.check("submap")?;
     if !(factor.is_finite() && (factor - 1.0).abs() <= MAX_STRETCH) {
-        return Err(Error::Param {
-            key: "stretch",
-            message: format!("must be within 1 +- {MAX_STRETCH}, got {factor}"),
-        });
+        return Err(crate::param(
+            "stretch",
+            format!("must be within 1 +- {MAX_STRETCH}, got {factor}"),
+        ));
     }
     let (rows, cols) = (submap.rows, submap.cols);
     out.clear();
@@ -140,12 +148,12 @@ mod tests {
         for f in [f64::NAN, 0.5, 1.3, f64::INFINITY] {
             assert!(matches!(
                 stretch_rows(&view(&pixels, 3, 4), f, &mut out),
-                Err(Error::Param { .. })
+                Err(crate::Error::Param(_))
             ));
         }
         assert!(matches!(
             stretch_rows(&view(&pixels, 5, 4), 1.0, &mut out),
-            Err(Error::Shape(_))
+            Err(crate::Error::Shape(_))
         ));
     }
 }

@@ -22,13 +22,8 @@ pub struct CorrelationParams {
 }
 
 impl CorrelationParams {
-    fn check(&self) -> Result<()> {
-        if !(self.column_m.is_finite() && self.column_m > 0.0) {
-            return Err(Error::Param {
-                key: "column_m",
-                message: format!("must be finite and > 0, got {}", self.column_m),
-            });
-        }
+    fn check(&self) -> gprflow_params::Result {
+        gprflow_params::positive("column_m", self.column_m)?;
         crate::check_shift_search(self.max_shift_m, self.min_overlap)
     }
 

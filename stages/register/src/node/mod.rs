@@ -33,7 +33,7 @@ use gprflow_stage::{
 
 use crate::closer::{Engineered, Keyed, Learned, LoopCloser, Match, Matcher, Oracle, SubmapIn, Zeroth};
 use crate::learned::{Head, Model};
-use crate::{Error, stretch};
+use crate::stretch;
 
 pub use crate::closer::{Association, Method, Stamps, ground_order};
 pub use params::RegisterParams;
@@ -132,16 +132,6 @@ fn registration(m: &Match) -> Registration {
     }
 }
 
-fn param_error(e: Error) -> StageError {
-    match e {
-        Error::Param { key, message } => StageError::Params(ParamError {
-            path: key.split('.').map(str::to_owned).collect(),
-            message,
-        }),
-        other => StageError::failed(other),
-    }
-}
-
 impl Stage for RegisterStage {
     type Params = RegisterParams;
     const NAME: &'static str = "register";
@@ -165,25 +155,27 @@ impl Stage for RegisterStage {
         Ok(vec![PortSpec::new("registration", Registration::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> std::result::Result<(), ParamError> {
+        params.check()
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
-        params.check().map_err(param_error)?;
         let needs_truth = params.association == Association::Truth || params.method == Method::Oracle;
         if needs_truth && ports.input("truth").is_none() {
-            return Err(StageError::Params(ParamError {
-                path: vec!["method".into()],
-                message: "the oracle method and the truth association need the `truth` input (ground-truth poses)"
-                    .into(),
-            }));
+            return Err(ParamError::new(
+                "method",
+                "the oracle method and the truth association need the `truth` input (ground-truth poses)",
+            )
+            .into());
         }
         if params.association == Association::Estimate && ports.input("estimate").is_none() {
-            return Err(StageError::Params(ParamError {
-                path: vec!["association".into()],
-                message:
-                    "association `estimate` needs the `estimate` input (the estimator's state, as a feedback input)"
-                        .into(),
-            }));
+            return Err(ParamError::new(
+                "association",
+                "association `estimate` needs the `estimate` input (the estimator's state, as a feedback input)",
+            )
+            .into());
         }
-        let stretches = stretch::factors(params.stretch_step, params.stretch_steps).map_err(param_error)?;
+        let stretches = stretch::factors(params.stretch_step, params.stretch_steps).map_err(StageError::failed)?;
         let matcher: Box<dyn Matcher> = match params.method {
             Method::Engineered => Box::new(Engineered {
                 params: params.engineered.clone(),
@@ -292,6 +284,7 @@ impl Stage for RegisterStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engineered::EngineeredParams;
 
     #[test]
     fn params_are_checked() {
@@ -300,26 +293,21 @@ mod tests {
             min_score: 2.0,
             ..RegisterParams::default()
         };
-        assert!(matches!(bad.check(), Err(Error::Param { key: "min_score", .. })));
+        assert_eq!(bad.check().map_err(|e| e.key()), Err("min_score".into()));
         let bad = RegisterParams {
             sigma_m: Some(-1.0),
             ..RegisterParams::default()
         };
-        assert!(matches!(bad.check(), Err(Error::Param { key: "sigma_m", .. })));
+        assert_eq!(bad.check().map_err(|e| e.key()), Err("sigma_m".into()));
         for (steps, step) in [(1, f64::NAN), (1, 0.0), (10, 0.03)] {
             let bad = RegisterParams {
                 stretch_steps: steps,
                 stretch_step: step,
                 ..RegisterParams::default()
             };
-            assert!(
-                matches!(
-                    bad.check(),
-                    Err(Error::Param {
-                        key: "stretch_step",
-                        ..
-                    })
-                ),
+            assert_eq!(
+                bad.check().map_err(|e| e.key()),
+                Err("stretch_step".into()),
                 "{steps} x {step}"
             );
         }
@@ -330,6 +318,14 @@ mod tests {
             ..RegisterParams::default()
         };
         assert!(off.check().is_ok());
+        let bad = RegisterParams {
+            engineered: EngineeredParams {
+                min_overlap: 0.0,
+                ..EngineeredParams::default()
+            },
+            ..RegisterParams::default()
+        };
+        assert_eq!(bad.check().map_err(|e| e.key()), Err("engineered.min_overlap".into()));
     }
 
     #[test]

@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use crate::candidates::CandidateGates;
 use crate::closer::{Association, CloserParams, Method, Stamps};
 use crate::engineered::EngineeredParams;
-use crate::{Error, Result, positive, stretch};
+use gprflow_params::{ParamError, finite, positive};
+
+use crate::stretch;
 
 /// Parameters of the `register` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -81,9 +83,12 @@ impl Default for RegisterParams {
 }
 
 impl RegisterParams {
-    pub(super) fn check(&self) -> Result<()> {
+    /// Checks every value; the ports' part (truth, estimate) is the node's.
+    pub(super) fn check(&self) -> gprflow_params::Result {
         self.candidates.check()?;
-        stretch::factors(self.stretch_step, self.stretch_steps)?;
+        crate::check_shift_search(self.engineered.max_shift_m, self.engineered.min_overlap)
+            .map_err(|e| e.within("engineered"))?;
+        stretch::check_factors(self.stretch_step, self.stretch_steps)?;
         positive("reference_spacing_m", self.reference_spacing_m)?;
         positive("query_spacing_m", self.query_spacing_m)?;
         positive("max_track_gap_s", self.max_track_gap_s)?;
@@ -91,18 +96,12 @@ impl RegisterParams {
             positive("sigma_m", s)?;
         }
         if !(self.min_score.is_finite() && (-1.0..=1.0).contains(&self.min_score)) {
-            return Err(Error::Param {
-                key: "min_score",
-                message: format!("must be a correlation in -1..=1, got {}", self.min_score),
-            });
+            return Err(ParamError::new(
+                "min_score",
+                format!("must be a correlation in -1..=1, got {}", self.min_score),
+            ));
         }
-        if !self.min_saliency.is_finite() {
-            return Err(Error::Param {
-                key: "min_saliency",
-                message: format!("must be finite, got {}", self.min_saliency),
-            });
-        }
-        Ok(())
+        finite("min_saliency", f64::from(self.min_saliency))
     }
 
     /// The loop closer's share of the parameters.
