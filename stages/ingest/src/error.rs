@@ -1,5 +1,5 @@
-//! What the readers report: [`Error`] for input they refuse, [`Dropped`] for single records
-//! they skip and count. Every message names the file, the record and the field.
+//! What the readers and the loader report: [`Error`] for input they refuse, [`Dropped`] for
+//! single records they skip and count. Every message names the file, the record and the field.
 
 use std::fmt;
 use std::path::PathBuf;
@@ -156,6 +156,23 @@ pub enum Error {
     Empty {
         /// The file.
         file: PathBuf,
+    },
+    /// The format cannot be told from the path ([`crate::format::detect`]).
+    #[error(
+        "{}: cannot tell the format (a folder is a CMU-GPR sequence; files: .mcap, .dzt, .dt1); set `format`",
+        path.display()
+    )]
+    UnknownFormat {
+        /// The source.
+        path: PathBuf,
+    },
+    /// An MCAP recording cannot be opened.
+    #[error("{message}")]
+    Recording {
+        /// The recording.
+        path: PathBuf,
+        /// What the recording reader said (it names the file).
+        message: String,
     },
 }
 

@@ -1,5 +1,6 @@
 //! `gprflow convert INPUT --to mcap`: a radar file (CMU-GPR folder, DZT, DT1/HD, or another
-//! MCAP) to one of our recordings, through the `ingest` stage's own loader.
+//! MCAP) to one of our recordings, through the loader the `ingest` stage plays
+//! (`gprflow_ingest::load`).
 
 use std::collections::BTreeMap;
 use std::io::Write as _;
@@ -8,21 +9,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use gprflow::record::{Recorder, RunMetadata};
-use gprflow_ingest::node::{IngestParams, Port, SourceFormat, TopicMap, load};
-
-/// The ingest parameters for converting `input` (all defaults but the source and format).
-pub fn ingest_params(input: &Path, format: SourceFormat) -> IngestParams {
-    IngestParams {
-        source: input.display().to_string(),
-        format,
-        pace: gprflow::record::Pace::Max,
-        speed: 1.0,
-        trace_interval_s: 0.01,
-        center_frequency_hz: None,
-        topics: TopicMap::default(),
-        wheel_scale: 1.0,
-    }
-}
+use gprflow_ingest::SourceFormat;
+use gprflow_ingest::load::{LoadOptions, Port, load};
 
 /// Writes `input` as an MCAP recording at `output`: traces on `/gpr/trace`, sweeps on
 /// `/lgpr/sweep`, IMU on `/imu/data`, wheel on `/wheel/odometry`, truth on `/truth/pose`.
@@ -30,7 +18,8 @@ pub fn ingest_params(input: &Path, format: SourceFormat) -> IngestParams {
 /// # Errors
 /// The reader's error (naming file, record and field) or a write error.
 pub fn convert_to_mcap(input: &Path, format: SourceFormat, output: &Path) -> Result<ExitCode> {
-    let loaded = load(&ingest_params(input, format)).with_context(|| format!("{}: cannot convert", input.display()))?;
+    let loaded =
+        load(input, format, &LoadOptions::default()).with_context(|| format!("{}: cannot convert", input.display()))?;
     let mut meta = RunMetadata::this_build();
     meta.graph_name = format!("convert {}", input.display());
     let first = loaded.messages.first().map_or(0, |m| m.1);

@@ -31,9 +31,9 @@ enum InputFormat {
     Dt1,
 }
 
-impl From<InputFormat> for gprflow_ingest::node::SourceFormat {
+impl From<InputFormat> for gprflow_ingest::SourceFormat {
     fn from(f: InputFormat) -> Self {
-        use gprflow_ingest::node::SourceFormat as S;
+        use gprflow_ingest::SourceFormat as S;
         match f {
             InputFormat::Auto => S::Auto,
             InputFormat::Mcap => S::Mcap,

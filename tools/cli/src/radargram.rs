@@ -139,13 +139,13 @@ pub fn radargram_command(req: &RadargramRequest<'_>) -> Result<ExitCode> {
     let (mut stamps_ns, mut distances_m, mut sample_interval_ns) = (Vec::new(), Vec::new(), 0.0);
     if !is_recording {
         // a radar file: its traces, as the ingest stage reads them
-        let params = crate::convert::ingest_params(input, gprflow_ingest::node::SourceFormat::Auto);
-        let loaded =
-            gprflow_ingest::node::load(&params).with_context(|| format!("{}: cannot read", input.display()))?;
+        let options = gprflow_ingest::load::LoadOptions::default();
+        let loaded = gprflow_ingest::load::load(input, gprflow_ingest::SourceFormat::Auto, &options)
+            .with_context(|| format!("{}: cannot read", input.display()))?;
         let first = loaded.messages.first().map_or(0, |m| m.1);
         for (port, stamp, data) in &loaded.messages {
             let t = (stamp - first) as f64 * 1e-9;
-            if *port != gprflow_ingest::node::Port::Gpr || t < from_s || to_s.is_some_and(|end| t > end) {
+            if *port != gprflow_ingest::load::Port::Gpr || t < from_s || to_s.is_some_and(|end| t > end) {
                 continue;
             }
             let trace: Trace = gprflow::msg::decode(data)?;
