@@ -15,17 +15,23 @@
 //!   whose fitted ground line passes within `max_cross_m` of it at a similar apex time, else
 //!   starts a new line. The stage first tries the estimator's own lines: the one whose
 //!   predicted forward distance fits the measured one.
+//! - [`observe`]: from hyperbolas to observations. Each apex is projected on the drive (wheel
+//!   distance, stamp, odometry ground point), kept once across overlapping submaps (the
+//!   strongest), and released with its forward distance once the drive has left it behind.
 //!
-//! `node` (feature `node`, default): the `lines` stage.
+//! `node` (feature `node`, default): the `lines` stage, which moves messages to and from an
+//! [`Observer`].
 
 #[cfg(feature = "node")]
 pub mod node;
 
 pub mod associate;
 pub mod detect;
+pub mod observe;
 
 pub use associate::{AssociationParams, Associator, GroundPoint};
 pub use detect::{DetectParams, Hyperbola, Image, detect};
+pub use observe::{Observation, Observer, ObserverParams, SubmapSpan};
 
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
@@ -38,7 +44,7 @@ pub enum Error {
         /// What is wrong and what was given.
         message: String,
     },
-    /// An image whose size or values cannot be searched.
+    /// A submap that cannot be searched: its image's size or values, or its span's distances.
     #[error("{0}")]
     Shape(String),
 }
