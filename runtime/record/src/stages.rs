@@ -112,10 +112,7 @@ pub struct ReplayParams {
 }
 
 fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
-    let rec = Recording::open(params.path.as_ref()).map_err(|e| ParamError {
-        path: vec!["path".to_owned()],
-        message: e.to_string(),
-    })?;
+    let rec = Recording::open(params.path.as_ref()).map_err(|e| ParamError::new("path", e.to_string()))?;
     Ok(rec
         .topics()
         .into_iter()
@@ -216,14 +213,11 @@ impl Stage for ReplayStage {
         replayed_topics(params)
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        gprflow_stage::params::positive("speed", params.speed)
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        if !(params.speed.is_finite() && params.speed > 0.0) {
-            return Err(ParamError {
-                path: vec!["speed".to_owned()],
-                message: format!("must be finite and > 0, got {}", params.speed),
-            }
-            .into());
-        }
         let rec = Recording::open(params.path.as_ref()).map_err(StageError::failed)?;
         let mut messages = Vec::new();
         let (_, stopped) = rec.scan(|m| {

@@ -132,16 +132,9 @@ impl EstimateParams {
 
     /// # Errors
     /// A parameter out of its range, named.
-    fn check(&self) -> Result<(), StageError> {
-        if !(self.state_rate_hz.is_finite() && self.state_rate_hz > 0.0) {
-            return Err(param_error(
-                "state_rate_hz",
-                format!("must be > 0, got {}", self.state_rate_hz),
-            ));
-        }
-        if self.lag_states == 0 {
-            return Err(param_error("lag_states", "must be at least 1".into()));
-        }
+    fn check(&self) -> gprflow_params::Result {
+        gprflow_params::positive("state_rate_hz", self.state_rate_hz)?;
+        gprflow_params::at_least("lag_states", self.lag_states, 1)?;
         let positive = [
             ("acc_noise_density", self.acc_noise_density),
             ("gyro_noise_density", self.gyro_noise_density),
@@ -154,9 +147,7 @@ impl EstimateParams {
             ("registration_sigma_m", self.registration_sigma_m),
         ];
         for (key, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(param_error(key, format!("must be finite and > 0, got {value}")));
-            }
+            gprflow_params::positive(key, value)?;
         }
         let off_or_positive = [
             ("nonholonomic_sigma_mps", self.nonholonomic_sigma_mps),
@@ -165,22 +156,10 @@ impl EstimateParams {
             ("registration_gate_growth_mps", self.registration_gate_growth_mps),
         ];
         for (key, value) in off_or_positive {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(param_error(
-                    key,
-                    format!("must be finite and >= 0 (0: off), got {value}"),
-                ));
-            }
+            gprflow_params::non_negative(key, value)?;
         }
         Ok(())
     }
-}
-
-fn param_error(key: &str, message: String) -> StageError {
-    StageError::Params(ParamError {
-        path: vec![key.to_owned()],
-        message,
-    })
 }
 
 /// The factor-graph estimator stage.
@@ -348,8 +327,11 @@ impl Stage for EstimateStage {
         ])
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        params.check()
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        params.check()?;
         let mut est = OnlineEstimator::new(params.online());
         if ports.input("initial_pose").is_some() {
             est.wait_for_origin();
@@ -542,7 +524,7 @@ mod tests {
             ),
         ] {
             match params.check() {
-                Err(StageError::Params(e)) => assert_eq!(e.path, vec![key.to_owned()], "{}", e.message),
+                Err(e) => assert_eq!(e.path, vec![key.to_owned()], "{}", e.message),
                 other => panic!("{key}: {other:?}"),
             }
         }

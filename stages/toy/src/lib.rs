@@ -74,13 +74,11 @@ impl Stage for ToySource {
         Ok(vec![PortSpec::new("trace", Trace::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        gprflow_stage::params::non_negative("period_s", params.period_s)
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        if !(params.period_s.is_finite() && params.period_s >= 0.0) {
-            return Err(StageError::Params(ParamError {
-                path: vec!["period_s".to_owned()],
-                message: format!("must be finite and >= 0, got {}", params.period_s),
-            }));
-        }
         Ok(Self {
             out: ports.output("trace")?,
             params,
