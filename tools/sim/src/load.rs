@@ -32,15 +32,16 @@ impl Scenario {
             SimError::Scenario { at, message }
         })?;
         let wander_fits = |(i, run): (usize, &crate::scenario::Run)| match &run.wander {
-            Some(wander) => motion::check_wander_fits(run, wander).map_err(|m| (format!("runs.{i}.wander.sigma_m"), m)),
+            Some(wander) => motion::check_wander_fits(run, wander)
+                .map_err(|m| gprflow_params::ParamError::new(&format!("runs.{i}.wander.sigma_m"), m)),
             None => Ok(()),
         };
         scenario
             .validate()
             .and_then(|()| scenario.runs.iter().enumerate().try_for_each(wander_fits))
-            .map_err(|(key, message)| SimError::Invalid {
-                at: gprflow::graph::locate_yaml_key(file, text, &key),
-                message,
+            .map_err(|e| SimError::Invalid {
+                at: gprflow::graph::locate_yaml_key(file, text, &e.key()),
+                message: e.message,
             })?;
         Ok(scenario)
     }

@@ -11,6 +11,8 @@ use std::f64::consts::TAU;
 use schemars::JsonSchema;
 use serde::Deserialize;
 
+use gprflow_params::{ParamError, non_negative, positive, within};
+
 use crate::SimError;
 
 /// A simulated world and the runs made in it.
@@ -743,46 +745,31 @@ impl Scenario {
     }
 
     /// Checks the numbers of every field (the path's feasibility is checked by [`Scenario::parse`]).
-    pub(crate) fn validate(&self) -> Result<(), (String, String)> {
-        fn positive(key: &str, v: f64) -> Result<(), (String, String)> {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err((key.to_owned(), format!("must be finite and > 0, got {v}")))
-            }
-        }
-        fn non_negative(key: &str, v: f64) -> Result<(), (String, String)> {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err((key.to_owned(), format!("must be finite and >= 0, got {v}")))
-            }
-        }
-        fn unit(key: &str, v: f64) -> Result<(), (String, String)> {
-            if (0.0..=1.0).contains(&v) {
-                Ok(())
-            } else {
-                Err((key.to_owned(), format!("must be in [0, 1], got {v}")))
-            }
-        }
+    pub(crate) fn validate(&self) -> gprflow_params::Result {
         if self.runs.is_empty() {
-            return Err(("runs".into(), "at least one run is needed".into()));
+            return Err(ParamError::new("runs", "at least one run is needed"));
         }
         if self.world.layers.is_empty() {
-            return Err(("world.layers".into(), "at least one layer is needed".into()));
+            return Err(ParamError::new("world.layers", "at least one layer is needed"));
         }
         let mut last_top = -1.0;
         for (i, layer) in self.world.layers.iter().enumerate() {
             let key = |f: &str| format!("world.layers.{i}.{f}");
             if i == 0 && layer.top_depth_m != 0.0 {
-                return Err((key("top_depth_m"), "the first layer starts at depth 0".into()));
+                return Err(ParamError::new(
+                    &key("top_depth_m"),
+                    "the first layer starts at depth 0",
+                ));
             }
             if layer.top_depth_m.is_nan() || layer.top_depth_m <= last_top {
-                return Err((key("top_depth_m"), "layers must get deeper".into()));
+                return Err(ParamError::new(&key("top_depth_m"), "layers must get deeper"));
             }
             last_top = layer.top_depth_m;
             if !(layer.eps_r.is_finite() && layer.eps_r >= 1.0) {
-                return Err((key("eps_r"), format!("must be >= 1, got {}", layer.eps_r)));
+                return Err(ParamError::new(
+                    &key("eps_r"),
+                    format!("must be >= 1, got {}", layer.eps_r),
+                ));
             }
             non_negative(&key("attenuation_db_per_m"), layer.attenuation_db_per_m)?;
             if let Some(u) = &layer.undulation {
@@ -793,13 +780,13 @@ impl Scenario {
         if let Some(t) = &self.world.texture {
             non_negative("world.texture.density_per_m3", t.density_per_m3)?;
             if t.density_per_m3 > 5000.0 {
-                return Err(("world.texture.density_per_m3".into(), "at most 5000".into()));
+                return Err(ParamError::new("world.texture.density_per_m3", "at most 5000"));
             }
             positive("world.texture.max_depth_m", t.max_depth_m)?;
             non_negative("world.texture.strength", t.strength)?;
             positive("world.texture.correlation_length_m", t.correlation_length_m)?;
-            unit("world.texture.correlation", t.correlation)?;
-            unit("world.texture.polarisation", t.polarisation)?;
+            within("world.texture.correlation", t.correlation, 0.0, 1.0)?;
+            within("world.texture.polarisation", t.polarisation, 0.0, 1.0)?;
         }
         for (i, p) in self.world.points.iter().enumerate() {
             positive(&format!("world.points.{i}.depth_m"), p.depth_m)?;
@@ -812,7 +799,7 @@ impl Scenario {
         }
         if let Some(r) = &self.world.random_points {
             non_negative("world.random_points.per_m2", r.per_m2)?;
-            unit("world.random_points.void_fraction", r.void_fraction)?;
+            within("world.random_points.void_fraction", r.void_fraction, 0.0, 1.0)?;
         }
         if let Some(r) = &self.world.rebar {
             positive("world.rebar.spacing_m.0", r.spacing_m[0])?;
@@ -828,7 +815,10 @@ impl Scenario {
                 non_negative("radar.antenna_height_m", r.antenna_height_m)?;
                 non_negative("radar.noise_counts", r.noise_counts)?;
                 if r.samples == 0 || r.samples > 65_536 {
-                    return Err(("radar.samples".into(), format!("must be 1..=65536, got {}", r.samples)));
+                    return Err(ParamError::new(
+                        "radar.samples",
+                        format!("must be 1..=65536, got {}", r.samples),
+                    ));
                 }
             }
             Radar::Lgpr(r) => {
@@ -838,7 +828,7 @@ impl Scenario {
                 positive("radar.beam_half_angle_deg", r.beam_half_angle_deg)?;
                 positive("radar.max_depth_m", r.max_depth_m)?;
                 if r.elements < 2 || r.tones == 0 {
-                    return Err(("radar.elements".into(), "need at least 2 elements and 1 tone".into()));
+                    return Err(ParamError::new("radar.elements", "need at least 2 elements and 1 tone"));
                 }
             }
         }
@@ -853,11 +843,11 @@ impl Scenario {
         for (i, run) in self.runs.iter().enumerate() {
             non_negative(&format!("runs.{i}.soil_moisture"), run.soil_moisture)?;
             if run.soil_moisture > 0.5 {
-                return Err((format!("runs.{i}.soil_moisture"), "at most 0.5".into()));
+                return Err(ParamError::new(&format!("runs.{i}.soil_moisture"), "at most 0.5"));
             }
             if !run.soil_moisture_per_min.is_finite() || run.soil_moisture_per_min.abs() > 0.1 {
-                return Err((
-                    format!("runs.{i}.soil_moisture_per_min"),
+                return Err(ParamError::new(
+                    &format!("runs.{i}.soil_moisture_per_min"),
                     format!("must be finite and within +-0.1, got {}", run.soil_moisture_per_min),
                 ));
             }
@@ -865,12 +855,15 @@ impl Scenario {
             non_negative(&format!("runs.{i}.end_pause_s"), run.end_pause_s)?;
             run.trajectory
                 .validate()
-                .map_err(|(k, m)| (format!("runs.{i}.trajectory.{k}"), m))?;
+                .map_err(|e| e.within(&format!("runs.{i}.trajectory")))?;
             if let Some(c) = &run.ground_contact {
                 let key = |f: &str| format!("runs.{i}.ground_contact.{f}");
                 non_negative(&key("ringing_sigma"), c.ringing_sigma)?;
                 if c.ringing_sigma > 3.0 {
-                    return Err((key("ringing_sigma"), format!("at most 3, got {}", c.ringing_sigma)));
+                    return Err(ParamError::new(
+                        &key("ringing_sigma"),
+                        format!("at most 3, got {}", c.ringing_sigma),
+                    ));
                 }
                 positive(&key("correlation_s"), c.correlation_s)?;
             }
@@ -887,14 +880,7 @@ impl Scenario {
 
 impl Trajectory {
     /// Checks the trajectory's numbers; the error names the field.
-    fn validate(&self) -> Result<(), (String, String)> {
-        let positive = |key: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err((key.to_owned(), format!("must be finite and > 0, got {v}")))
-            }
-        };
+    fn validate(&self) -> gprflow_params::Result {
         match self {
             Trajectory::Waypoints {
                 points,
@@ -905,10 +891,10 @@ impl Trajectory {
                 positive("speed_mps", *speed_mps)?;
                 positive("corner_radius_m", *corner_radius_m)?;
                 if points.len() < 2 {
-                    return Err(("points".into(), "at least two waypoints".into()));
+                    return Err(ParamError::new("points", "at least two waypoints"));
                 }
                 if points.windows(2).any(|w| w[0] == w[1]) {
-                    return Err(("points".into(), "two consecutive waypoints are equal".into()));
+                    return Err(ParamError::new("points", "two consecutive waypoints are equal"));
                 }
                 Ok(())
             }
@@ -921,7 +907,7 @@ impl Trajectory {
                 positive("length_m", *length_m)?;
                 positive("speed_mps", *speed_mps)?;
                 if *repeats == 0 {
-                    return Err(("repeats".into(), "at least 1".into()));
+                    return Err(ParamError::new("repeats", "at least 1"));
                 }
                 Ok(())
             }
@@ -937,7 +923,7 @@ impl Trajectory {
                 positive("speed_mps", *speed_mps)?;
                 positive("corner_radius_m", *corner_radius_m)?;
                 if *laps == 0 {
-                    return Err(("laps".into(), "at least 1".into()));
+                    return Err(ParamError::new("laps", "at least 1"));
                 }
                 Ok(())
             }
@@ -952,7 +938,7 @@ impl Trajectory {
                 positive("spacing_m", *spacing_m)?;
                 positive("speed_mps", *speed_mps)?;
                 if *rows == 0 {
-                    return Err(("rows".into(), "at least 1".into()));
+                    return Err(ParamError::new("rows", "at least 1"));
                 }
                 Ok(())
             }
@@ -967,8 +953,8 @@ impl Trajectory {
                 positive("speed_mps", *speed_mps)?;
                 positive("meander_wavelength_m", *meander_wavelength_m)?;
                 if !(meander_m.is_finite() && *meander_m >= 0.0 && *meander_m < meander_wavelength_m / 4.0) {
-                    return Err((
-                        "meander_m".into(),
+                    return Err(ParamError::new(
+                        "meander_m",
                         format!("must be in [0, meander_wavelength_m / 4), got {meander_m}"),
                     ));
                 }
@@ -984,16 +970,19 @@ impl Trajectory {
                 positive("speed_kmh", *speed_kmh)?;
                 positive("bend_radius_m", *bend_radius_m)?;
                 if lap_length_m.is_nan() || *lap_length_m <= TAU * bend_radius_m {
-                    return Err((
-                        "lap_length_m".into(),
-                        "must exceed the two bends (2 pi bend_radius_m)".into(),
+                    return Err(ParamError::new(
+                        "lap_length_m",
+                        "must exceed the two bends (2 pi bend_radius_m)",
                     ));
                 }
                 if lateral_offset_m.is_nan() || lateral_offset_m.abs() >= *bend_radius_m {
-                    return Err(("lateral_offset_m".into(), "must be smaller than the bend radius".into()));
+                    return Err(ParamError::new(
+                        "lateral_offset_m",
+                        "must be smaller than the bend radius",
+                    ));
                 }
                 if *laps == 0 {
-                    return Err(("laps".into(), "at least 1".into()));
+                    return Err(ParamError::new("laps", "at least 1"));
                 }
                 Ok(())
             }
