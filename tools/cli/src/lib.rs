@@ -7,6 +7,7 @@ pub mod commands;
 pub mod convert;
 pub mod diff;
 pub mod eval;
+pub mod experiment;
 pub mod plot;
 pub mod radargram;
 pub mod sim;

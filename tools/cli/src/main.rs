@@ -286,6 +286,39 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Run an experiment file's matrix (worlds x models, with repeats) and print its tables;
+    /// write them between the markers of the markdown file the experiment names.
+    ///
+    /// Examples:
+    ///   gprflow experiment tools/experiments/tables.yaml
+    ///   gprflow experiment tools/experiments/tables.yaml --variant by_hand --repeats 0
+    ///   gprflow experiment tools/experiments/repeats.yaml --set stamps=overlap --reuse
+    Experiment {
+        /// Experiment file (YAML; its fields are described in tools/experiments/tables.yaml).
+        file: PathBuf,
+        /// One of the file's variants (e.g. `by_hand`: every world's by_hand run).
+        #[arg(long)]
+        variant: Option<String>,
+        /// Repeats per world instead of the file's.
+        #[arg(short = 'n', long, value_name = "N")]
+        repeats: Option<u32>,
+        /// A graph variable for every model whose graph declares it (repeatable); the runs go
+        /// to a folder named after them and the tables are not written.
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        /// Keep the runs whose eval result (JSON) is already there.
+        #[arg(long)]
+        reuse: bool,
+        /// Print the tables only; write nothing into the markdown file.
+        #[arg(long)]
+        no_write: bool,
+        /// Folder for recordings and runs instead of the file's.
+        #[arg(short, long, value_name = "DIR")]
+        output: Option<PathBuf>,
+        /// Print the commands it would run, and stop.
+        #[arg(long)]
+        dry_run: bool,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -459,6 +492,29 @@ fn main() -> ExitCode {
             repeat,
             schema,
             json,
+        }),
+        Command::Experiment {
+            file,
+            variant,
+            repeats,
+            set,
+            reuse,
+            no_write,
+            output,
+            dry_run,
+        } => gprflow_cli::experiment::parse_sets(&set).and_then(|sets| {
+            gprflow_cli::experiment::experiment_command(&gprflow_cli::experiment::ExperimentArgs {
+                file,
+                choices: gprflow_cli::experiment::plan::Choices {
+                    variant,
+                    repeats,
+                    sets,
+                    out: output,
+                },
+                reuse,
+                write: !no_write,
+                dry_run,
+            })
         }),
         Command::Bench {
             which:
