@@ -3,7 +3,7 @@
 # run simulated again (one repeat) with one of its effects taken out or weakened at a time
 # (wander off the line, drying soil, uneven ground contact, the rebar grid), each localised
 # with the learned model and the oracle (graphs/localize.yaml, oracle association, as
-# tools/scripts/repeats.sh), and summarised: learned registrations, their error, and the ATE.
+# tools/experiments/repeats.yaml), and summarised: learned registrations, their error, and the ATE.
 # The scenario copies live in the output folder; the committed scenarios are not touched.
 #
 #   tools/scripts/by-hand-factors.sh                       # parking_garage, repeat 4
