@@ -3,6 +3,8 @@
 
 use std::path::Path;
 
+use gprflow::msg::{RegistrationAttempt, RegistrationCheck};
+
 use crate::common::{BASEMENT, gprflow, logged_count, stderr};
 use crate::sim::simulated;
 use crate::{decode_all, launch_recorded};
@@ -204,30 +206,42 @@ fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
         all.extend(sets.iter().map(|s| (*s).to_owned()));
         let (p, o) = launch_recorded(dir.path(), graph, &all);
         let registrations = p.get("/register/registration").map_or(0, Vec::len);
-        let ate = eval_json(&dir.path().join("run.mcap"), &rec)["ate"]["rmse"]
-            .as_f64()
-            .expect("ate");
-        (registrations, stderr(&o), ate)
+        let eval = eval_json(&dir.path().join("run.mcap"), &rec);
+        let ate = eval["ate"]["rmse"].as_f64().expect("ate");
+        // the diagnostics topics: every pair judged, every registration checked
+        let attempts: Vec<RegistrationAttempt> = p.get("/register/attempt").map_or_else(Vec::new, |m| decode_all(m));
+        let checks: Vec<RegistrationCheck> = p
+            .get("/estimate/registration_check")
+            .map_or_else(Vec::new, |m| decode_all(m));
+        if graph.ends_with("localize.yaml") {
+            let registered = attempts.iter().filter(|a| a.outcome == "registered").count();
+            assert_eq!(registered, registrations, "an attempt per registration");
+            assert_eq!(checks.len(), registrations, "a check per registration");
+            assert!(
+                eval["attempts"]["rows"].is_array() && eval["registration_checks"]["gated"].is_object(),
+                "{eval}"
+            );
+        }
+        let stretched = attempts
+            .iter()
+            .filter(|a| a.outcome == "registered" && a.stretch != 1.0)
+            .count();
+        let gated = checks.iter().filter(|c| !c.accepted).count();
+        (registrations, stderr(&o), ate, stretched, gated)
     };
-    let (n, log, ate) = localise("graphs/localize.yaml", &["method=learned"]);
-    let (n_off, log_off, ate_off) = localise(
+    let (n, log, ate, stretched, gated) = localise("graphs/localize.yaml", &["method=learned", "diagnostics=true"]);
+    let (n_off, log_off, ate_off, stretched_off, gated_off) = localise(
         "graphs/localize.yaml",
-        &["method=learned", "stretch_steps=0", "gate_m=0"],
+        &["method=learned", "stretch_steps=0", "gate_m=0", "diagnostics=true"],
     );
-    let (_, _, ate_odo) = localise("graphs/odometry.yaml", &[]);
-    let stretched = logged_count(&log, "stretched").expect("the register stage's counts");
+    let (_, _, ate_odo, _, _) = localise("graphs/odometry.yaml", &[]);
     assert!(
         stretched > 0 && n > n_off,
         "{n} registrations ({stretched} stretched), {n_off} without the search"
     );
-    assert_eq!(logged_count(&log_off, "stretched"), Some(0));
-    // the estimate stage logs its count only when it dropped something
-    let gated = logged_count(&log, "gated").unwrap_or(0);
-    assert!(
-        gated >= 1 && gated * 10 < n as u64,
-        "{gated} of {n} registrations gated"
-    );
-    assert!(logged_count(&log_off, "gated").is_none(), "gate off, yet: {log_off}");
+    assert_eq!(stretched_off, 0);
+    assert!(gated >= 1 && gated * 10 < n, "{gated} of {n} registrations gated");
+    assert_eq!(gated_off, 0, "gate off, yet {gated_off} gated");
     for (log, stretched_per_query) in [(&log, 2), (&log_off, 0)] {
         let count = |key| logged_count(log, key).unwrap_or_else(|| panic!("no {key}= in {log}"));
         let (encoded, queries, references, submaps) =

@@ -2,8 +2,10 @@
 # The registration gate's data (graphs/localize.yaml `gate_m`, `gate_growth_mps`): the learned
 # model localises the training scenarios' runs that pass ground twice (forward_backward and
 # by_hand of training_1, _2 and the held-out _3; never the evaluation worlds), with the gate
-# off, oracle association and the estimate's own, and tools/scripts/residuals.py reports how
-# far the registrations were from the estimate when they arrived.
+# off, oracle association and the estimate's own, recording the estimator's registration checks
+# (graphs/localize.yaml `diagnostics=true`); `gprflow eval` checks each against the truth and
+# gives the smallest gate that keeps every right registration, and this script takes the
+# largest over the runs.
 #
 #   tools/scripts/residuals.sh                  # out/residuals: recordings, logs, the table
 #   tools/scripts/residuals.sh --set stretch_steps=0   # without the stretch search (on by default)
@@ -21,23 +23,36 @@ while [[ $# -gt 0 ]]; do
     exit 2
 done
 choose_gprflow
-tools/peer/setup-venv.sh > /dev/null
 out=out/residuals
 mkdir -p "$out"
-pairs=()
+reports=()
 for scenario in training_1 training_2 training_3; do
     for run in forward_backward by_hand; do
         rec=$out/$scenario-$run.mcap
         [[ -f $rec ]] || $g sim "tools/sim/scenarios/$scenario.yaml" -o "$rec" --run "$run" > /dev/null
-        $g convert "$rec" --to tum --topic /truth/pose -o "$out/$scenario-$run.truth.txt" > /dev/null
         for association in truth estimate; do
             base=$out/$scenario-$run-$association
             $g launch graphs/localize.yaml --set recording="$rec" --set method=learned \
-                --set association="$association" --set gate_m=0 "${sets[@]}" \
-                --log info,gprflow_estimate=debug > "$base.log" 2>&1
-            pairs+=("$base.log" "$out/$scenario-$run.truth.txt")
+                --set association="$association" --set gate_m=0 --set diagnostics=true "${sets[@]}" \
+                --record "$base.run.mcap" > "$base.log" 2>&1
+            $g eval "$base.run.mcap" --truth "$rec" --format json > "$base.json"
+            reports+=("$base.json")
         done
         echo "$scenario $run done" >&2
     done
 done
-.venv-peers/bin/python tools/scripts/residuals.py "${pairs[@]}" | tee "$out/residuals.md"
+python3 - "${reports[@]}" <<'PY' | tee "$out/residuals.md"
+import json, sys
+checks = [json.load(open(f))["registration_checks"] for f in sys.argv[1:]]
+checks = [c for c in checks if c]
+count = lambda k: sum(c["accepted"][k] + c["gated"][k] for c in checks)
+print(f"{count('count')} registrations in {len(checks)} runs: {count('right')} right, {count('wrong')} wrong "
+      f"(> {100 * checks[0]['tolerance_m']:g} cm)")
+wrong = sorted((r for c in checks for r in c["wrong_residuals_m"]), reverse=True)
+if wrong:
+    print("wrong ones, |residual| m: " + ", ".join(f"{r:.3f}" for r in wrong))
+print("| growth (m/s) | smallest base under which every right registration fell (m) |")
+print("|---|---|")
+for k, g in enumerate(checks[0]["gate_bases"]):
+    print(f"| {g['growth_mps']:g} | {max(c['gate_bases'][k]['base_m'] for c in checks):.3f} |")
+PY

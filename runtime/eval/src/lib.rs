@@ -12,6 +12,7 @@
 //!
 //! [`fit_wheel`] calibrates a wheel against the truth (the scale `ingest`'s `wheel_scale` takes).
 
+pub mod diagnostics;
 pub mod diff;
 pub mod messages;
 mod trajectory;

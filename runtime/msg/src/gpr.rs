@@ -155,6 +155,51 @@ message! {
 }
 
 message! {
+    /// One candidate pair the register stage tried, registered or refused, and why: a
+    /// diagnostic (the stage's `attempt` output, with its `diagnostics` parameter on) that
+    /// `gprflow eval` checks against the truth.
+    pub struct RegistrationAttempt = "gprflow_msgs/msg/RegistrationAttempt" {
+        /// Stamped with the query's anchor.
+        pub header: Header,
+        pub reference_submap: u32,
+        pub query_submap: u32,
+        /// The two anchors (not the overlap stamps a registration may carry).
+        pub reference_stamp: Time,
+        pub query_stamp: Time,
+        /// `engineered`, `learned`, `oracle`, ...
+        pub method: String,
+        /// `registered`, or the reason of the refusal (`low_score`, `shape`, `share`, ...).
+        pub outcome: String,
+        /// The along-track shift the method found, m (NaN when it found none).
+        pub shift_m: f64,
+        /// The method's score (NaN when none).
+        pub score: f64,
+        /// The travel-time stretch of the query that was judged (1 without the search).
+        pub stretch: f64,
+    }
+}
+
+message! {
+    /// The estimator's verdict on one registration: taken into the graph, or dropped by
+    /// the gate. A diagnostic (the estimate stage's `registration_check` output, with its
+    /// `diagnostics` parameter on) that `gprflow eval` checks against the truth.
+    pub struct RegistrationCheck = "gprflow_msgs/msg/RegistrationCheck" {
+        /// Stamped when the registration arrived (its query stamp).
+        pub header: Header,
+        pub reference_stamp: Time,
+        pub query_stamp: Time,
+        /// The measured along-track distance between the two stamps, m.
+        pub along_track_m: f64,
+        /// The estimate's along-track distance minus the measured one, m.
+        pub residual_m: f64,
+        /// The gate at that moment, m (0: off).
+        pub gate_m: f64,
+        /// Taken into the graph (false: dropped by the gate).
+        pub accepted: bool,
+    }
+}
+
+message! {
     /// A detected subsurface line crossing (hyperbola apex) seen from the body.
     pub struct LineObservation = "gprflow_msgs/msg/LineObservation" {
         pub header: Header,
@@ -237,6 +282,8 @@ stamped!(
     WheelOdometry,
     Submap<'a>,
     Registration,
+    RegistrationAttempt,
+    RegistrationCheck,
     LineObservation,
     LineMap,
     StateEstimate,

@@ -3,7 +3,7 @@
 
 use super::{
     CdrDecode, Image, Imu, LineMap, LineObservation, MapFix, Message, MsgError, Odometry, PoseStamped, Registration,
-    StateEstimate, Submap, Sweep, Trace, Trajectory, WheelOdometry, decode,
+    RegistrationAttempt, RegistrationCheck, StateEstimate, Submap, Sweep, Trace, Trajectory, WheelOdometry, decode,
 };
 
 /// A message type known to gprflow.
@@ -54,6 +54,8 @@ static TYPES: &[MessageType] = registry!(
     WheelOdometry,
     Submap<'_>,
     Registration,
+    RegistrationAttempt,
+    RegistrationCheck,
     LineObservation,
     LineMap,
     StateEstimate,

@@ -3,7 +3,8 @@
 
 use gprflow_msg::{
     Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Point, Pose, PoseStamped,
-    PoseWithCovariance, Quaternion, Registration, StateEstimate, Trajectory, Vector3 as Vector3Msg, WheelOdometry,
+    PoseWithCovariance, Quaternion, Registration, RegistrationCheck, StateEstimate, Trajectory, Vector3 as Vector3Msg,
+    WheelOdometry,
 };
 use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
@@ -67,6 +68,10 @@ pub struct EstimateParams {
     /// in the update that needs one: slower, but the same input always gives the same output
     /// (what evaluation runs and regression diffs need).
     pub background_solves: bool,
+    /// Also publish the verdict on every registration (taken, or dropped by the gate, with
+    /// its residual) on the `registration_check` output (`RegistrationCheck`), for
+    /// `gprflow eval` (default false).
+    pub diagnostics: bool,
 }
 
 impl Default for EstimateParams {
@@ -92,6 +97,7 @@ impl Default for EstimateParams {
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             snapshot_every_states: 10,
             background_solves: o.smoother.background,
+            diagnostics: false,
         }
     }
 }
@@ -170,6 +176,8 @@ pub struct EstimateStage {
     state_out: Output<StateEstimate>,
     trajectory_out: Output<Trajectory>,
     line_map_out: Output<LineMap>,
+    /// The diagnostics output, when asked for.
+    check_out: Option<Output<RegistrationCheck>>,
     last_stamp_ns: i64,
     /// The first `initial_pose` message was seen (later ones are ignored).
     origin_seen: bool,
@@ -319,12 +327,16 @@ impl Stage for EstimateStage {
         ])
     }
 
-    fn outputs(_: &Self::Params) -> Result<Vec<PortSpec>, ParamError> {
-        Ok(vec![
+    fn outputs(params: &Self::Params) -> Result<Vec<PortSpec>, ParamError> {
+        let mut ports = vec![
             PortSpec::new("state", StateEstimate::TYPE_NAME),
             PortSpec::new("trajectory", Trajectory::TYPE_NAME),
             PortSpec::new("line_map", LineMap::TYPE_NAME),
-        ])
+        ];
+        if params.diagnostics {
+            ports.push(PortSpec::new("registration_check", RegistrationCheck::TYPE_NAME));
+        }
+        Ok(ports)
     }
 
     fn check_params(params: &Self::Params) -> Result<(), ParamError> {
@@ -341,6 +353,11 @@ impl Stage for EstimateStage {
             state_out: ports.output("state")?,
             trajectory_out: ports.output("trajectory")?,
             line_map_out: ports.output("line_map")?,
+            check_out: if params.diagnostics {
+                Some(ports.output("registration_check")?)
+            } else {
+                None
+            },
             params,
             last_stamp_ns: 0,
             origin_seen: false,
@@ -401,24 +418,18 @@ impl Stage for EstimateStage {
                     ) => {
                         let gated = matches!(o, RegistrationOutcome::Gated { .. });
                         self.gated_registrations += u64::from(gated);
-                        // tools/scripts/residuals.py reads these lines (built only when they go out)
-                        if tracing::enabled!(tracing::Level::DEBUG) {
-                            let verdict = if gated {
-                                format!(
-                                    "registration gated: {residual_m:.3} m from the estimate (gate {gate_m:.3} m); dropped"
-                                )
-                            } else {
-                                "registration added".to_owned()
-                            };
-                            tracing::debug!(
-                                seq = input.seq(),
-                                reference_stamp_ns = r.reference_stamp_ns,
-                                query_stamp_ns = r.query_stamp_ns,
-                                along_track_m = r.along_track_m,
+                        tracing::trace!(seq = input.seq(), residual_m, gate_m, gated, "registration");
+                        if let Some(port) = self.check_out {
+                            let check = RegistrationCheck {
+                                header: Header::new(input.stamp_ns(), "map"),
+                                reference_stamp: m.reference_stamp,
+                                query_stamp: m.query_stamp,
+                                along_track_m: r.along_track_m,
                                 residual_m,
                                 gate_m,
-                                "{verdict}"
-                            );
+                                accepted: !gated,
+                            };
+                            out.send(port, &check)?;
                         }
                     }
                     None => {}

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
+use gprflow::eval::diagnostics::{AttemptReport, CheckReport, attempt_report, check_report};
 use gprflow::eval::messages::{
     LINE_MATCH_GATE_M, LineObservationError, RegistrationError, line_observation_error, registration_error,
 };
@@ -16,6 +17,11 @@ use serde::Serialize;
 /// The topic the simulator writes ground truth to.
 pub const TRUTH_TOPIC: &str = "/truth/pose";
 const TRUTH_LINES_TOPIC: &str = "/truth/lines";
+/// A registration attempt's shift within this of the truth is right, m (the learned
+/// model's registration error is a few cm).
+const ATTEMPT_TOLERANCE_M: f64 = 0.05;
+/// A registration the estimator checked is right within this of the truth, m.
+const CHECK_TOLERANCE_M: f64 = 0.1;
 
 /// Output formats of reports.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -122,6 +128,10 @@ pub struct EvalReport {
     pub lines: Option<eval::LineError>,
     /// Line observations (detected hyperbolas) against the truth's poses and lines.
     pub line_observations: Option<LineObservationError>,
+    /// The register stage's attempts (its `diagnostics` output), against the truth.
+    pub attempts: Option<AttemptReport>,
+    /// The estimator's registration checks (its `diagnostics` output), against the truth.
+    pub registration_checks: Option<CheckReport>,
 }
 
 pub(crate) fn topic_name(t: &str) -> String {
@@ -257,7 +267,46 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         registration,
         lines,
         line_observations,
+        attempts: attempt_report(&run, &truth, (args.max_gap_ms * 1e6) as i64, ATTEMPT_TOLERANCE_M),
+        registration_checks: check_report(&run, &truth, (args.max_gap_ms * 1e6) as i64, CHECK_TOLERANCE_M),
     })
+}
+
+/// The diagnostics topics' summaries, as text lines (the same in both formats).
+fn diagnostics_summary(r: &EvalReport) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some(a) = &r.attempts {
+        lines.push(format!(
+            "registration attempts on {} (a shift within {} m of the truth is right):",
+            a.topic, a.tolerance_m
+        ));
+        for row in &a.rows {
+            lines.push(format!(
+                "  {:<40} {:>6} pairs, {:>6} with a shift, {:>6} right",
+                row.label, row.pairs, row.with_shift, row.right
+            ));
+        }
+    }
+    if let Some(c) = &r.registration_checks {
+        lines.push(format!(
+            "registration checks on {} (right within {} m): accepted {} ({} right, {} wrong), gated {} ({} right, {} wrong)",
+            c.topic,
+            c.tolerance_m,
+            c.accepted.count,
+            c.accepted.right,
+            c.accepted.wrong,
+            c.gated.count,
+            c.gated.right,
+            c.gated.wrong
+        ));
+        let bases: Vec<String> = c
+            .gate_bases
+            .iter()
+            .map(|g| format!("{:.3} m at {} m/s", g.base_m, g.growth_mps))
+            .collect();
+        lines.push(format!("  smallest gate keeping every right one: {}", bases.join(", ")));
+    }
+    lines
 }
 
 fn line_observation_summary(o: &LineObservationError) -> String {
@@ -332,6 +381,10 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             if let Some(o) = &r.line_observations {
                 writeln!(out, "\n{}", line_observation_summary(o))?;
             }
+            let diagnostics = diagnostics_summary(&r);
+            if !diagnostics.is_empty() {
+                writeln!(out, "\n```\n{}\n```", diagnostics.join("\n"))?;
+            }
         }
         ReportFormat::Text => {
             writeln!(out, "estimate  {} ({} poses)", r.estimate, r.estimate_poses)?;
@@ -368,6 +421,9 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             }
             if let Some(o) = &r.line_observations {
                 writeln!(out, "{}", line_observation_summary(o))?;
+            }
+            for line in diagnostics_summary(&r) {
+                writeln!(out, "{line}")?;
             }
         }
     }

@@ -12,7 +12,7 @@ use gprflow_geometry::Track;
 
 use super::{Counts, Keyed, Method};
 use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
-use crate::learned::{Features, Model};
+use crate::learned::{Features, Model, Refusal};
 use crate::{Error, Result, stretch};
 
 /// What a matcher may look at besides the two submaps.
@@ -37,7 +37,28 @@ pub enum Outcome {
         stretch: f64,
     },
     /// The method's gate refused the pair (or the two cannot be compared).
-    Refused,
+    Refused {
+        /// Why, in snake_case words (`low_score`, `shape`, `no_shared_features`, ...).
+        why: &'static str,
+        /// The shift the method found before refusing, m (NaN when none).
+        shift_m: f64,
+        /// Its score (NaN when none).
+        score: f64,
+        /// The stretch of the query that was judged.
+        stretch: f64,
+    },
+}
+
+impl Outcome {
+    /// Refused before the method found any shift.
+    pub fn refused(why: &'static str) -> Self {
+        Self::Refused {
+            why,
+            shift_m: f64::NAN,
+            score: f64::NAN,
+            stretch: 1.0,
+        }
+    }
 }
 
 /// How a candidate pair is matched: one implementation per [`Method`].
@@ -107,7 +128,7 @@ impl Matcher for Engineered {
             // different shapes (a recording with two radars, say): not comparable
             Err(Error::Shape(why)) => {
                 tracing::debug!(reference = r.id, query = q.id, "not registered: {why}");
-                return Ok(Outcome::Refused);
+                return Ok(Outcome::refused("shape"));
             }
             Err(e) => return Err(e),
         };
@@ -117,7 +138,13 @@ impl Matcher for Engineered {
                 score: m.score,
                 stretch: 1.0,
             },
-            _ => Outcome::Refused,
+            Some(m) => Outcome::Refused {
+                why: "low_score",
+                shift_m: m.shift_m,
+                score: m.score,
+                stretch: 1.0,
+            },
+            None => Outcome::refused("no_overlap"),
         })
     }
 }
@@ -186,32 +213,31 @@ impl Matcher for Learned {
 
     fn assess(&mut self, r: &Keyed, q: &Keyed, _: &Context<'_>) -> Result<Outcome> {
         let Some(fr) = r.features.as_ref() else {
-            return Ok(Outcome::Refused);
+            return Ok(Outcome::refused("no_reference_features"));
         };
         if self.queries.is_empty() {
-            return Ok(Outcome::Refused);
+            return Ok(Outcome::refused("no_query_features"));
         }
         let (m, refusal, at) = self.model.assess_best(fr, &self.queries, q.resolution_m)?;
         let stretch = self.stretches.get(at).copied().unwrap_or(1.0);
-        // one line per pair, registered or not (tools/scripts/refusals.py reads the
-        // refused; built only when it goes out)
-        if tracing::enabled!(tracing::Level::DEBUG) {
-            let verdict = refusal.map_or_else(|| "registered".to_owned(), |why| format!("not registered: {why:?}"));
-            tracing::debug!(
-                reference = r.id,
-                query = q.id,
-                reference_stamp_ns = r.anchor.stamp_ns,
-                query_stamp_ns = q.anchor.stamp_ns,
-                shift_m = m.shift_m,
-                share_score = m.share_score,
-                agreement = m.agreement,
+        tracing::trace!(
+            reference = r.id,
+            query = q.id,
+            shift_m = m.shift_m,
+            share_score = m.share_score,
+            agreement = m.agreement,
+            stretch,
+            corr = ?m.corr,
+            "learned: {}",
+            refusal.map_or("registered", Refusal::name)
+        );
+        if let Some(why) = refusal {
+            return Ok(Outcome::Refused {
+                why: why.name(),
+                shift_m: m.shift_m,
+                score: m.share_score,
                 stretch,
-                corr = ?m.corr,
-                "{verdict}"
-            );
-        }
-        if refusal.is_some() {
-            return Ok(Outcome::Refused);
+            });
         }
         Ok(Outcome::Matched {
             shift_m: m.shift_m,
@@ -248,7 +274,7 @@ impl Matcher for Oracle {
             context.truth.at(r.anchor.stamp_ns, gap),
             context.truth.at(q.anchor.stamp_ns, gap),
         ) else {
-            return Ok(Outcome::Refused);
+            return Ok(Outcome::refused("no_truth"));
         };
         Ok(Outcome::Matched {
             shift_m: a.relative(&b).0,

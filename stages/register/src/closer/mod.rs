@@ -268,6 +268,25 @@ pub struct Counts {
     pub encoded: u64,
 }
 
+/// One candidate pair the matcher judged, registered or refused (the diagnostics output).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Attempt {
+    /// Reference submap id.
+    pub reference: u32,
+    /// Query submap id.
+    pub query: u32,
+    /// The two anchors' stamps (reference, query), ns.
+    pub anchors_ns: (i64, i64),
+    /// `registered`, or why the method refused ([`Outcome::Refused`]).
+    pub outcome: &'static str,
+    /// The shift the method found, m (NaN when none).
+    pub shift_m: f64,
+    /// Its score (NaN when none).
+    pub score: f64,
+    /// The query's stretch that was judged.
+    pub stretch: f64,
+}
+
 /// The loop closer: keeps references, finds loop candidates for each query and matches them.
 #[derive(Debug)]
 pub struct LoopCloser {
@@ -279,6 +298,8 @@ pub struct LoopCloser {
     references: Vec<Keyed>,
     last_query_odom: Option<Planar>,
     counts: Counts,
+    /// Every pair judged since the last [`LoopCloser::take_attempts`], when kept.
+    attempts: Option<Vec<Attempt>>,
 }
 
 impl LoopCloser {
@@ -293,7 +314,21 @@ impl LoopCloser {
             references: Vec::new(),
             last_query_odom: None,
             counts: Counts::default(),
+            attempts: None,
         }
+    }
+
+    /// Keeps every pair the matcher judges, for [`LoopCloser::take_attempts`].
+    #[must_use]
+    pub fn keeping_attempts(mut self) -> Self {
+        self.attempts = Some(Vec::new());
+        self
+    }
+
+    /// The pairs judged since the last call, in order (none unless
+    /// [`keeping_attempts`](Self::keeping_attempts)).
+    pub fn take_attempts(&mut self) -> Vec<Attempt> {
+        self.attempts.as_mut().map(std::mem::take).unwrap_or_default()
     }
 
     /// The matcher's method.
@@ -425,13 +460,38 @@ impl LoopCloser {
             truth: &self.truth,
             max_gap_ns: self.max_gap_ns(),
         };
-        let (shift_m, score, stretch) = match self.matcher.assess(r, q, &context)? {
+        let outcome = self.matcher.assess(r, q, &context)?;
+        if let Some(attempts) = &mut self.attempts {
+            let (outcome, shift_m, score, stretch) = match outcome {
+                Outcome::Matched {
+                    shift_m,
+                    score,
+                    stretch,
+                } => ("registered", shift_m, score, stretch),
+                Outcome::Refused {
+                    why,
+                    shift_m,
+                    score,
+                    stretch,
+                } => (why, shift_m, score, stretch),
+            };
+            attempts.push(Attempt {
+                reference: r.id,
+                query: q.id,
+                anchors_ns: (r.anchor.stamp_ns, q.anchor.stamp_ns),
+                outcome,
+                shift_m,
+                score,
+                stretch,
+            });
+        }
+        let (shift_m, score, stretch) = match outcome {
             Outcome::Matched {
                 shift_m,
                 score,
                 stretch,
             } => (shift_m, score, stretch),
-            Outcome::Refused => return Ok(None),
+            Outcome::Refused { .. } => return Ok(None),
         };
         if stretch != 1.0 {
             self.counts.stretched += 1;

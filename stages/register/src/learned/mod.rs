@@ -241,6 +241,16 @@ pub enum Refusal {
     ChannelsDisagree,
 }
 
+impl Refusal {
+    /// The refusal in snake_case words, as the diagnostics output names it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::NoSharedFeatures => "no_shared_features",
+            Self::ChannelsDisagree => "channels_disagree",
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

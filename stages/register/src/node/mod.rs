@@ -25,13 +25,14 @@ mod params;
 
 use gprflow_geometry::Planar;
 use gprflow_msg::{
-    Covariance6, Header, Message, Point, Pose, PoseStamped, Quaternion, Registration, StateEstimate, Submap, Time,
+    Covariance6, Header, Message, Point, Pose, PoseStamped, Quaternion, Registration, RegistrationAttempt,
+    StateEstimate, Submap, Time,
 };
 use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
 };
 
-use crate::closer::{Engineered, Keyed, Learned, LoopCloser, Match, Matcher, Oracle, SubmapIn, Zeroth};
+use crate::closer::{Attempt, Engineered, Keyed, Learned, LoopCloser, Match, Matcher, Oracle, SubmapIn, Zeroth};
 use crate::learned::{Head, Model};
 use crate::stretch;
 
@@ -75,6 +76,8 @@ pub struct RegisterStage {
     params: RegisterParams,
     closer: LoopCloser,
     out: Output<Registration>,
+    /// The diagnostics output, when asked for.
+    attempts: Option<Output<RegistrationAttempt>>,
     last_primary_ns: i64,
     counts: Counts,
     drops: Drops,
@@ -91,7 +94,29 @@ impl RegisterStage {
             out.send(self.out, &msg)?;
             self.counts.sent += 1;
         }
+        if let Some(port) = self.attempts {
+            let method = self.closer.method().name();
+            for a in self.closer.take_attempts() {
+                out.send(port, &attempt(stamp_ns, method, &a))?;
+            }
+        }
         Ok(())
+    }
+}
+
+/// The diagnostics message of attempt `a`.
+fn attempt(stamp_ns: i64, method: &str, a: &Attempt) -> RegistrationAttempt {
+    RegistrationAttempt {
+        header: Header::new(stamp_ns, "base_link"),
+        reference_submap: a.reference,
+        query_submap: a.query,
+        reference_stamp: Time::from_ns(a.anchors_ns.0),
+        query_stamp: Time::from_ns(a.anchors_ns.1),
+        method: method.to_owned(),
+        outcome: a.outcome.to_owned(),
+        shift_m: a.shift_m,
+        score: a.score,
+        stretch: a.stretch,
     }
 }
 
@@ -151,8 +176,12 @@ impl Stage for RegisterStage {
         ])
     }
 
-    fn outputs(_: &Self::Params) -> std::result::Result<Vec<PortSpec>, ParamError> {
-        Ok(vec![PortSpec::new("registration", Registration::TYPE_NAME)])
+    fn outputs(params: &Self::Params) -> std::result::Result<Vec<PortSpec>, ParamError> {
+        let mut ports = vec![PortSpec::new("registration", Registration::TYPE_NAME)];
+        if params.diagnostics {
+            ports.push(PortSpec::new("attempt", RegistrationAttempt::TYPE_NAME));
+        }
+        Ok(ports)
     }
 
     fn check_params(params: &Self::Params) -> std::result::Result<(), ParamError> {
@@ -204,8 +233,19 @@ impl Stage for RegisterStage {
                 shift_m: Head::from_json(&params.head).map_err(StageError::failed)?.zeroth_m,
             }),
         };
+        let closer = LoopCloser::new(params.closer(), matcher);
+        let attempts = if params.diagnostics {
+            Some(ports.output("attempt")?)
+        } else {
+            None
+        };
         Ok(Self {
-            closer: LoopCloser::new(params.closer(), matcher),
+            closer: if attempts.is_some() {
+                closer.keeping_attempts()
+            } else {
+                closer
+            },
+            attempts,
             params,
             out: ports.output("registration")?,
             last_primary_ns: i64::MIN,

@@ -57,6 +57,9 @@ pub struct RegisterParams {
     pub stretch_steps: usize,
     /// Relative stretch between two neighbouring factors of the search (default 0.015).
     pub stretch_step: f64,
+    /// Also publish every candidate pair judged, registered or refused and why, on the
+    /// `attempt` output (`RegistrationAttempt`), for `gprflow eval` (default false).
+    pub diagnostics: bool,
 }
 
 impl Default for RegisterParams {
@@ -78,6 +81,7 @@ impl Default for RegisterParams {
             stamps: Stamps::Anchors,
             stretch_steps: 0,
             stretch_step: 0.015,
+            diagnostics: false,
         }
     }
 }
