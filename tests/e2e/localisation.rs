@@ -97,7 +97,7 @@ fn calibrate_wheel_measures_the_rigs_scale_and_the_odometry_takes_it() {
     let o = gprflow(&["launch", "graphs/odometry.yaml", "--set", "wheel_scale=0"]);
     assert!(!o.status.success());
     assert!(
-        stderr(&o).contains("wheel_scale: must be finite and > 0, got 0"),
+        stderr(&o).contains("wheel_scale: bad parameter for stage `ingest`: must be a positive number, got 0"),
         "{}",
         stderr(&o)
     );

@@ -6,6 +6,7 @@
 use std::path::Path;
 
 use gprflow_record::{Pace, Player};
+use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::format::SourceFormat;
@@ -84,28 +85,13 @@ impl Stage for IngestStage {
             .collect())
     }
 
+    fn check_params(params: &Self::Params) -> Result<(), ParamError> {
+        positive("speed", params.speed)?;
+        positive("trace_interval_s", params.trace_interval_s)?;
+        positive("wheel_scale", params.wheel_scale)
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        if !(params.speed.is_finite() && params.speed > 0.0) {
-            return Err(ParamError {
-                path: vec!["speed".to_owned()],
-                message: format!("must be finite and > 0, got {}", params.speed),
-            }
-            .into());
-        }
-        if !(params.trace_interval_s.is_finite() && params.trace_interval_s > 0.0) {
-            return Err(ParamError {
-                path: vec!["trace_interval_s".to_owned()],
-                message: format!("must be finite and > 0, got {}", params.trace_interval_s),
-            }
-            .into());
-        }
-        if !(params.wheel_scale.is_finite() && params.wheel_scale > 0.0) {
-            return Err(ParamError {
-                path: vec!["wheel_scale".to_owned()],
-                message: format!("must be finite and > 0, got {}", params.wheel_scale),
-            }
-            .into());
-        }
         let loaded =
             load(Path::new(&params.source), params.format, &params.load_options()).map_err(StageError::failed)?;
         tracing::info!("ingest: {}: {}", params.source, loaded.summary);
@@ -167,21 +153,21 @@ mod tests {
 
     #[test]
     fn bad_intervals_and_scales_are_refused_with_the_key() {
-        let refused = |p: IngestParams| match create(p) {
-            Err(StageError::Params(e)) => format!("{}: {}", e.path.join("."), e.message),
+        let refused = |p: IngestParams| match IngestStage::check_params(&p) {
+            Err(e) => e.to_string(),
             other => panic!("not a parameter error: {other:?}"),
         };
         let e = refused(IngestParams {
             trace_interval_s: 0.0,
             ..params()
         });
-        assert!(e.starts_with("trace_interval_s: must be finite and > 0"), "{e}");
+        assert!(e.starts_with("trace_interval_s: must be a positive number"), "{e}");
         for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
             let e = refused(IngestParams {
                 wheel_scale: bad,
                 ..params()
             });
-            assert!(e.starts_with("wheel_scale: must be finite and > 0"), "{e}");
+            assert!(e.starts_with("wheel_scale: must be a positive number"), "{e}");
         }
     }
 

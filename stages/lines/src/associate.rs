@@ -11,7 +11,9 @@
 //! and in both cases only at an apex time within `max_apex_time_diff_ns` of the line's mean.
 //! Otherwise it starts a new line. A fitted line is preferred over a single place.
 
-use crate::{Error, Result, positive};
+use gprflow_params::positive;
+
+use crate::{ParamError, Result};
 
 /// Parameters of [`Associator`].
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
@@ -53,26 +55,26 @@ impl AssociationParams {
     ///
     /// # Errors
     /// A value out of range.
-    pub fn check(&self) -> Result<()> {
+    pub fn check(&self) -> gprflow_params::Result {
         positive("association.max_cross_m", self.max_cross_m)?;
         positive("association.max_apex_time_diff_ns", self.max_apex_time_diff_ns)?;
         positive("association.min_link_m", self.min_link_m)?;
         positive("association.max_link_m", self.max_link_m)?;
         positive("association.max_forward_m", self.max_forward_m)?;
         if self.fit_points < 2 {
-            return Err(Error::Param {
-                key: "association.fit_points",
-                message: format!("must be at least 2, got {}", self.fit_points),
-            });
+            return Err(ParamError::new(
+                "association.fit_points",
+                format!("must be at least 2, got {}", self.fit_points),
+            ));
         }
         if self.max_link_m < self.min_link_m {
-            return Err(Error::Param {
-                key: "association.max_link_m",
-                message: format!(
+            return Err(ParamError::new(
+                "association.max_link_m",
+                format!(
                     "must be at least min_link_m ({}), got {}",
                     self.min_link_m, self.max_link_m
                 ),
-            });
+            ));
         }
         Ok(())
     }

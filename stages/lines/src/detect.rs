@@ -13,7 +13,9 @@
 //! `separation_ns`, along track within twice the half aperture plus `separation_m`) is that
 //! hyperbola's flank, matched by a slower curve tangent to it, and is dropped.
 
-use crate::{Error, Result, positive};
+use gprflow_params::positive;
+
+use crate::{Error, ParamError, Result};
 
 /// A submap image: `rows` samples (time, `sample_interval_ns` apart, row 0 at time zero) by
 /// `cols` along-track columns (`resolution_m` apart), row-major.
@@ -77,33 +79,33 @@ impl DetectParams {
     ///
     /// # Errors
     /// A value out of range.
-    pub fn check(&self) -> Result<()> {
+    pub fn check(&self) -> gprflow_params::Result {
         positive("detect.min_velocity_m_per_ns", self.min_velocity_m_per_ns)?;
         positive("detect.max_velocity_m_per_ns", self.max_velocity_m_per_ns)?;
         if self.max_velocity_m_per_ns < self.min_velocity_m_per_ns {
-            return Err(Error::Param {
-                key: "detect.max_velocity_m_per_ns",
-                message: format!(
+            return Err(ParamError::new(
+                "detect.max_velocity_m_per_ns",
+                format!(
                     "must be at least min_velocity_m_per_ns ({}), got {}",
                     self.min_velocity_m_per_ns, self.max_velocity_m_per_ns
                 ),
-            });
+            ));
         }
         if !(1..=64).contains(&self.velocities) {
-            return Err(Error::Param {
-                key: "detect.velocities",
-                message: format!("must be 1..=64, got {}", self.velocities),
-            });
+            return Err(ParamError::new(
+                "detect.velocities",
+                format!("must be 1..=64, got {}", self.velocities),
+            ));
         }
         positive("detect.half_aperture_m", self.half_aperture_m)?;
         positive("detect.min_score", self.min_score)?;
         positive("detect.separation_m", self.separation_m)?;
         positive("detect.separation_ns", self.separation_ns)?;
         if !(self.min_apex_time_ns.is_finite() && self.min_apex_time_ns >= 0.0) {
-            return Err(Error::Param {
-                key: "detect.min_apex_time_ns",
-                message: format!("must be a number >= 0, got {}", self.min_apex_time_ns),
-            });
+            return Err(ParamError::new(
+                "detect.min_apex_time_ns",
+                format!("must be a number >= 0, got {}", self.min_apex_time_ns),
+            ));
         }
         Ok(())
     }

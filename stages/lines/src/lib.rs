@@ -33,17 +33,14 @@ pub use associate::{AssociationParams, Associator, GroundPoint};
 pub use detect::{DetectParams, Hyperbola, Image, detect};
 pub use observe::{Observation, Observer, ObserverParams, SubmapSpan};
 
+pub use gprflow_params::ParamError;
+
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// A parameter is out of range; `key` names it as in the graph file.
-    #[error("{key}: {message}")]
-    Param {
-        /// Parameter name.
-        key: &'static str,
-        /// What is wrong and what was given.
-        message: String,
-    },
+    /// A parameter is out of range; its path names it as in the graph file.
+    #[error(transparent)]
+    Param(#[from] ParamError),
     /// A submap that cannot be searched: its image's size or values, or its span's distances.
     #[error("{0}")]
     Shape(String),
@@ -51,15 +48,3 @@ pub enum Error {
 
 /// Result of this crate.
 pub type Result<T> = std::result::Result<T, Error>;
-
-/// `Ok` when `v` is finite and above zero, else a parameter error naming `key`.
-pub(crate) fn positive(key: &'static str, v: f64) -> Result<()> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(Error::Param {
-            key,
-            message: format!("must be a positive number, got {v}"),
-        })
-    }
-}

@@ -18,7 +18,9 @@ use gprflow_stage::{
 use crate::associate::AssociationParams;
 use crate::detect::{DetectParams, Image};
 use crate::observe::{Observation, Observer, ObserverParams, SubmapSpan};
-use crate::{Error, positive};
+use gprflow_params::positive;
+
+use crate::Error;
 
 /// Parameters of the `lines` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -53,28 +55,18 @@ impl Default for LinesParams {
 }
 
 impl LinesParams {
-    fn check(&self) -> crate::Result<()> {
+    fn check(&self) -> gprflow_params::Result {
         self.detect.check()?;
         self.association.check()?;
         positive("sigma_m", self.sigma_m)?;
         positive("soil_velocity_m_per_ns", self.soil_velocity_m_per_ns)?;
         if !self.antenna_forward_m.is_finite() {
-            return Err(Error::Param {
-                key: "antenna_forward_m",
-                message: format!("must be finite, got {}", self.antenna_forward_m),
-            });
+            return Err(ParamError::new(
+                "antenna_forward_m",
+                format!("must be finite, got {}", self.antenna_forward_m),
+            ));
         }
         Ok(())
-    }
-}
-
-fn param_error(e: Error) -> StageError {
-    match e {
-        Error::Param { key, message } => StageError::Params(ParamError {
-            path: key.split('.').map(str::to_owned).collect(),
-            message,
-        }),
-        other => StageError::failed(other),
     }
 }
 
@@ -184,19 +176,22 @@ impl Stage for LinesStage {
         Ok(vec![PortSpec::new("observation", LineObservation::TYPE_NAME)])
     }
 
+    fn check_params(params: &Self::Params) -> std::result::Result<(), ParamError> {
+        params.check()
+    }
+
     fn create(params: Self::Params, ports: &Ports) -> std::result::Result<Self, StageError> {
-        params.check().map_err(param_error)?;
         if ports.input("lines").is_some() && ports.input("estimate").is_none() {
-            return Err(StageError::Params(ParamError {
-                path: vec!["association".into()],
-                message: "the `lines` input (the estimated line map) needs the `estimate` input: lines are \
-                          matched by the forward distance predicted from the estimated pose"
-                    .into(),
-            }));
+            return Err(ParamError::new(
+                "association",
+                "the `lines` input (the estimated line map) needs the `estimate` input: lines are \
+                 matched by the forward distance predicted from the estimated pose",
+            )
+            .into());
         }
         let with_estimate = ports.input("estimate").is_some();
         Ok(Self {
-            observer: Observer::new(params.observer_params(), with_estimate).map_err(param_error)?,
+            observer: Observer::new(params.observer_params(), with_estimate).map_err(StageError::failed)?,
             include_invalid: params.include_invalid,
             out: ports.output("observation")?,
             counts: Counts::default(),
@@ -278,7 +273,7 @@ mod tests {
             sigma_m: 0.0,
             ..LinesParams::default()
         };
-        assert!(matches!(bad.check(), Err(Error::Param { key: "sigma_m", .. })));
+        assert_eq!(bad.check().map_err(|e| e.key()), Err("sigma_m".into()));
         let bad = LinesParams {
             detect: DetectParams {
                 velocities: 0,
@@ -286,12 +281,6 @@ mod tests {
             },
             ..LinesParams::default()
         };
-        assert!(matches!(
-            bad.check(),
-            Err(Error::Param {
-                key: "detect.velocities",
-                ..
-            })
-        ));
+        assert_eq!(bad.check().map_err(|e| e.key()), Err("detect.velocities".into()));
     }
 }
