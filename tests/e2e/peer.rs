@@ -168,6 +168,35 @@ fn python_mcap_reader_decodes_every_message_type() {
             }),
         ),
         (
+            "/t/attempt",
+            RegistrationAttempt::TYPE_NAME,
+            encode(&RegistrationAttempt {
+                header: h(16),
+                reference_submap: 3,
+                query_submap: 40,
+                reference_stamp: Time::from_ns(2_000_000_001),
+                query_stamp: Time::from_ns(9_000_000_002),
+                method: "learned".to_owned(),
+                outcome: "no_shared_features".to_owned(),
+                shift_m: -0.125,
+                score: 0.42,
+                stretch: 1.015,
+            }),
+        ),
+        (
+            "/t/check",
+            RegistrationCheck::TYPE_NAME,
+            encode(&RegistrationCheck {
+                header: h(17),
+                reference_stamp: Time::from_ns(2_000_000_001),
+                query_stamp: Time::from_ns(9_000_000_002),
+                along_track_m: 3.25,
+                residual_m: -0.5,
+                gate_m: 0.3,
+                accepted: false,
+            }),
+        ),
+        (
             "/t/imu",
             Imu::TYPE_NAME,
             encode(&Imu {
@@ -232,7 +261,7 @@ fn python_mcap_reader_decodes_every_message_type() {
         }
         w.finish().expect("finish");
     }
-    peer_check(&rec, "15 messages on 15 topics");
+    peer_check(&rec, "17 messages on 17 topics");
 }
 
 #[test]

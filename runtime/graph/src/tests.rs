@@ -140,7 +140,11 @@ fn input(name: &str, msg_type: &str, optional: bool) -> InputSpec {
 fn catalog() -> StageCatalog {
     let none = || InputPorts::Fixed(vec![]);
     [
-        FakeStage::new("toy_source", none(), &[("trace", TRACE)]).params(|p| parse_params::<SourceParams>(p).map(drop)),
+        // the real stage's value check too (its `check_params`)
+        FakeStage::new("toy_source", none(), &[("trace", TRACE)]).params(|p| {
+            let source = parse_params::<SourceParams>(p)?;
+            gprflow_stage::params::optional("period_s", source.period_s, gprflow_stage::params::non_negative)
+        }),
         FakeStage::new(
             "toy_gain",
             InputPorts::Fixed(vec![input("trace", TRACE, false)]),
