@@ -17,7 +17,7 @@ pub const MAX_STRETCH: f64 = 0.25;
 /// `steps` is 0).
 ///
 /// # Errors
-/// [`Error::Param`] (`stretch_step`) as [`check_factors`].
+/// [`Error::Param`](crate::Error::Param) (`stretch_step`) as [`check_factors`].
 pub fn factors(step: f64, steps: usize) -> Result<Vec<f64>> {
     if steps == 0 {
         return Ok(vec![1.0]);
@@ -49,7 +49,8 @@ pub fn check_factors(step: f64, steps: usize) -> gprflow_params::Result {
 /// arrivals.
 ///
 /// # Errors
-/// [`Error::Shape`] for an inconsistent submap; [`Error::Param`] (`stretch`) for a factor that
+/// [`Error::Shape`](crate::Error::Shape) for an inconsistent submap;
+/// [`Error::Param`](crate::Error::Param) (`stretch`) for a factor that
 /// is not finite or lies outside `1 +- MAX_STRETCH`.
 pub fn stretch_rows(submap: &SubmapView<'_>, factor: f64, out: &mut Vec<f32>) -> Result<()> {
     submap.check("submap")?;
