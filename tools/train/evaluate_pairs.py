@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Engineered baseline and learned model on every cross-pass pair of simulated runs (a tool).
 
-Table 4.1 of seed 000 compares the models on validation pairs. ``tools/scripts/tables.sh`` does
+Table 4.1 of seed 000 compares the models on validation pairs. ``gprflow experiment tools/experiments/tables.yaml`` does
 that through the localisation graph (the register stage's loop candidates, its gates); this
 does it on all ground-truth pairs of a run instead, gates off and on, to see where each model
 fails. Pairs follow the training rules (tools/train/gprdata.py: anchors within 0.25 m
