@@ -156,7 +156,8 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
     let estimate = Trajectory::from_recording(&run, &topic)?;
     let truth = Trajectory::from_recording(&truth_rec, &truth_topic)
         .with_context(|| format!("{}: no ground truth on {truth_topic}", truth_rec.path().display()))?;
-    let a = eval::associate(&estimate, &truth, (args.max_gap_ms * 1e6) as i64);
+    let max_gap_ns = (args.max_gap_ms * 1e6) as i64;
+    let a = eval::associate(&estimate, &truth, max_gap_ns);
     if a.stamps_ns.is_empty() {
         bail!(
             "{} {topic}: none of its {} poses falls inside the truth's time span ({} poses on {truth_topic})",
@@ -248,10 +249,10 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
             ],
         )?;
     }
-    let registration = registration_error(&run, &truth, (args.max_gap_ms * 1e6) as i64);
+    let registration = registration_error(&run, &truth, max_gap_ns);
     let line_observations = true_lines
         .as_ref()
-        .and_then(|(_, l)| line_observation_error(&run, &truth, l, (args.max_gap_ms * 1e6) as i64));
+        .and_then(|(_, l)| line_observation_error(&run, &truth, l, max_gap_ns));
     Ok(EvalReport {
         estimate: format!("{} {topic}", args.run.display()),
         truth: format!("{} {truth_topic}", truth_rec.path().display()),
@@ -267,8 +268,8 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         registration,
         lines,
         line_observations,
-        attempts: attempt_report(&run, &truth, (args.max_gap_ms * 1e6) as i64, ATTEMPT_TOLERANCE_M),
-        registration_checks: check_report(&run, &truth, (args.max_gap_ms * 1e6) as i64, CHECK_TOLERANCE_M),
+        attempts: attempt_report(&run, &truth, max_gap_ns, ATTEMPT_TOLERANCE_M),
+        registration_checks: check_report(&run, &truth, max_gap_ns, CHECK_TOLERANCE_M),
     })
 }
 

@@ -460,39 +460,34 @@ impl LoopCloser {
             truth: &self.truth,
             max_gap_ns: self.max_gap_ns(),
         };
-        let outcome = self.matcher.assess(r, q, &context)?;
+        // `refused`: why, when the method refused the pair
+        let (refused, shift_m, score, stretch) = match self.matcher.assess(r, q, &context)? {
+            Outcome::Matched {
+                shift_m,
+                score,
+                stretch,
+            } => (None, shift_m, score, stretch),
+            Outcome::Refused {
+                why,
+                shift_m,
+                score,
+                stretch,
+            } => (Some(why), shift_m, score, stretch),
+        };
         if let Some(attempts) = &mut self.attempts {
-            let (outcome, shift_m, score, stretch) = match outcome {
-                Outcome::Matched {
-                    shift_m,
-                    score,
-                    stretch,
-                } => ("registered", shift_m, score, stretch),
-                Outcome::Refused {
-                    why,
-                    shift_m,
-                    score,
-                    stretch,
-                } => (why, shift_m, score, stretch),
-            };
             attempts.push(Attempt {
                 reference: r.id,
                 query: q.id,
                 anchors_ns: (r.anchor.stamp_ns, q.anchor.stamp_ns),
-                outcome,
+                outcome: refused.unwrap_or("registered"),
                 shift_m,
                 score,
                 stretch,
             });
         }
-        let (shift_m, score, stretch) = match outcome {
-            Outcome::Matched {
-                shift_m,
-                score,
-                stretch,
-            } => (shift_m, score, stretch),
-            Outcome::Refused { .. } => return Ok(None),
-        };
+        if refused.is_some() {
+            return Ok(None);
+        }
         if stretch != 1.0 {
             self.counts.stretched += 1;
         }
