@@ -1,0 +1,242 @@
+//! The double buffer of local grids (seed 001 §2.2.1, Fig. 10): the tracker works on the
+//! current grid while a worker thread grids the next one ahead of the vehicle, so a route of
+//! any length needs two grids in memory.
+//!
+//! Policy (for a 50 m grid): once the vehicle has passed the current grid's centre by 5 m along
+//! its direction of travel (or is 10 m from it in any direction), the worker grids a new one
+//! 15 m ahead; the tracker switches to it once the vehicle is nearer its centre. When the
+//! vehicle would leave the current grid's usable part (20 m from its centre) before the next
+//! is ready, the tracker waits for it (a stall, counted). At 97 km/h the worker has the 15 m
+//! between request and edge, 0.55 s, to grid.
+
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use super::grid::{GridSpec, LocalGrid};
+use super::store::{MapReader, StoreError};
+
+/// Distance past the grid's centre at which the next grid is requested, in grid sizes
+/// (5 m of a 50 m grid).
+const TRIGGER: f64 = 0.1;
+/// How far ahead of the vehicle the next grid is centred, in grid sizes (15 m).
+const LOOKAHEAD: f64 = 0.3;
+/// The part of a grid near its edge not used for tracking (the array and the search box must
+/// fit inside), in grid sizes (5 m).
+const MARGIN: f64 = 0.1;
+
+/// A grid as the worker made it, with how long it took and the damage it met.
+#[derive(Debug)]
+pub struct Gridded {
+    /// The grid.
+    pub grid: Arc<LocalGrid>,
+    /// Wall time of the gridding.
+    pub took: Duration,
+    /// Damaged tiles met (their readable part was used).
+    pub damage: Vec<StoreError>,
+}
+
+/// What the pager did on one update.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct PagerEvents {
+    /// A new grid was requested.
+    pub requested: bool,
+    /// The current grid was replaced.
+    pub switched: bool,
+    /// The tracker had to wait for a grid.
+    pub stalled: bool,
+}
+
+/// Keeps the current grid and has the next one made in the background.
+#[derive(Debug)]
+pub struct GridPager {
+    spec: GridSpec,
+    current: Option<Arc<LocalGrid>>,
+    next: Option<Gridded>,
+    requests: Sender<[f64; 2]>,
+    results: Receiver<Result<Gridded, StoreError>>,
+    pending: bool,
+    worker: Option<JoinHandle<()>>,
+    /// Gridding times, s (for the report).
+    pub grid_times_s: Vec<f64>,
+    /// Stalls so far.
+    pub stalls: u64,
+    /// Damage met so far (reported once each by the caller).
+    pub damage: Vec<StoreError>,
+}
+
+impl GridPager {
+    /// A pager on `map` with grids of `spec`; starts its worker thread.
+    pub fn new(map: MapReader, spec: GridSpec) -> Self {
+        let (req_tx, req_rx) = channel::<[f64; 2]>();
+        let (res_tx, res_rx) = channel();
+        let worker_spec = spec.clone();
+        let worker = std::thread::Builder::new()
+            .name("lgpr-grid".into())
+            .spawn(move || {
+                for centre in req_rx {
+                    let start = Instant::now();
+                    let out = LocalGrid::from_map(&map, &worker_spec, centre).map(|(grid, damage)| Gridded {
+                        grid: Arc::new(grid),
+                        took: start.elapsed(),
+                        damage,
+                    });
+                    if res_tx.send(out).is_err() {
+                        break;
+                    }
+                }
+            })
+            .ok();
+        Self {
+            spec,
+            current: None,
+            next: None,
+            requests: req_tx,
+            results: res_rx,
+            pending: false,
+            worker,
+            grid_times_s: Vec::new(),
+            stalls: 0,
+            damage: Vec::new(),
+        }
+    }
+
+    /// The grid in use.
+    pub fn current(&self) -> Option<&Arc<LocalGrid>> {
+        self.current.as_ref()
+    }
+
+    fn request(&mut self, centre: [f64; 2]) -> Result<(), StoreError> {
+        self.requests.send(centre).map_err(|_| StoreError::BadColumn {
+            what: "the gridding thread has stopped".into(),
+        })?;
+        self.pending = true;
+        Ok(())
+    }
+
+    fn accept(&mut self, g: Result<Gridded, StoreError>) -> Result<(), StoreError> {
+        self.pending = false;
+        let mut g = g?;
+        self.grid_times_s.push(g.took.as_secs_f64());
+        self.damage.append(&mut g.damage);
+        self.next = Some(g);
+        Ok(())
+    }
+
+    fn wait(&mut self) -> Result<(), StoreError> {
+        let g = self.results.recv().map_err(|_| StoreError::BadColumn {
+            what: "the gridding thread has stopped".into(),
+        })?;
+        self.accept(g)
+    }
+
+    /// Makes sure a grid covers the vehicle at `position` moving along `direction` (a unit
+    /// vector, or zero when stopped), and asks for the next one when due.
+    ///
+    /// # Errors
+    /// Reading the map failed.
+    pub fn update(&mut self, position: [f64; 2], direction: [f64; 2]) -> Result<PagerEvents, StoreError> {
+        let mut ev = PagerEvents::default();
+        if self.pending
+            && let Ok(g) = self.results.try_recv()
+        {
+            self.accept(g)?;
+        }
+        let Some(current) = self.current.clone() else {
+            // the first grid: nothing to track on until it exists
+            if !self.pending && self.next.is_none() {
+                self.request(position)?;
+            }
+            if self.next.is_none() {
+                self.wait()?;
+            }
+            self.current = self.next.take().map(|g| g.grid);
+            ev.switched = true;
+            return Ok(ev);
+        };
+        let size = self.spec.size_m;
+        let usable = size / 2.0 - MARGIN * size;
+        if let Some(next) = &self.next
+            && next.grid.distance_from_centre(position[0], position[1])
+                < current.distance_from_centre(position[0], position[1])
+        {
+            self.current = self.next.take().map(|g| g.grid);
+            ev.switched = true;
+        } else if current.distance_from_centre(position[0], position[1]) > usable {
+            if !self.pending && self.next.is_none() {
+                self.request(position)?;
+                ev.requested = true;
+            }
+            if self.next.is_none() {
+                self.wait()?;
+            }
+            self.stalls += 1;
+            ev.stalled = true;
+            self.current = self.next.take().map(|g| g.grid);
+            ev.switched = true;
+        }
+        let Some(current) = self.current.clone() else {
+            return Ok(ev);
+        };
+        let c = current.centre();
+        let (dx, dy) = (position[0] - c[0], position[1] - c[1]);
+        let ahead = dx * direction[0] + dy * direction[1];
+        let far = current.distance_from_centre(position[0], position[1]);
+        if !self.pending && self.next.is_none() && (ahead > TRIGGER * size || far > 2.0 * TRIGGER * size) {
+            let reach = LOOKAHEAD * size;
+            self.request([position[0] + reach * direction[0], position[1] + reach * direction[1]])?;
+            ev.requested = true;
+        }
+        Ok(ev)
+    }
+}
+
+impl Drop for GridPager {
+    fn drop(&mut self) {
+        // closing the request channel ends the worker
+        let (tx, _) = channel();
+        drop(std::mem::replace(&mut self.requests, tx));
+        if let Some(w) = self.worker.take() {
+            let _ = w.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::store::{MapInfo, MapWriter};
+
+    #[test]
+    fn a_long_drive_keeps_two_grids_and_never_stalls_at_walking_pace() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 8, 0.2)).unwrap();
+        for i in 0..4000 {
+            w.push(i as f64 * 0.1, 0.0, i, 0, &[1.0; 8]).unwrap();
+        }
+        w.finish().unwrap();
+        let spec = GridSpec {
+            size_m: 20.0,
+            ..GridSpec::default()
+        };
+        let mut pager = GridPager::new(MapReader::open(dir.path()).unwrap(), spec);
+        let mut switches = 0;
+        for step in 0..3900 {
+            let x = step as f64 * 0.1;
+            let ev = pager.update([x, 0.0], [1.0, 0.0]).unwrap();
+            if ev.switched {
+                switches += 1;
+            }
+            let g = pager.current().unwrap();
+            assert!(g.slot_at(x, 0.0).is_some(), "no map under the vehicle at {x}");
+            assert!(g.distance_from_centre(x, 0.0) <= 5.0 + 1e-9, "{x} vs {:?}", g.centre());
+            // give the worker time, as the time between sweeps would
+            if ev.requested {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+        assert!(switches > 20, "{switches}");
+        assert!(pager.grid_times_s.len() >= switches - 1);
+    }
+}
