@@ -10,10 +10,13 @@
 //!
 //! [`diff`] compares two recorded runs for regression.
 //!
+//! [`lgpr`] measures LGPR tracking as seed 001 does (eq. 11, along- and cross-track).
+//!
 //! [`fit_wheel`] calibrates a wheel against the truth (the scale `ingest`'s `wheel_scale` takes).
 
 pub mod diagnostics;
 pub mod diff;
+pub mod lgpr;
 pub mod messages;
 mod trajectory;
 mod wheel;

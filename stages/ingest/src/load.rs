@@ -6,7 +6,7 @@ use std::borrow::Cow;
 use std::path::Path;
 
 use gprflow_msg::{
-    Header, Imu, Message, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode, encode,
+    Header, Imu, Message, Odometry, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode, encode,
 };
 use gprflow_record::Recording;
 
@@ -31,17 +31,20 @@ pub enum Port {
     Wheel,
     /// Ground truth poses.
     Truth,
+    /// GPS/INS fixes (`nav_msgs/Odometry`: position, orientation, body velocity).
+    Gps,
 }
 
 impl Port {
     /// Every port, in output order.
-    pub const ALL: [Port; 6] = [
+    pub const ALL: [Port; 7] = [
         Port::Gpr,
         Port::Sweep,
         Port::SweepCalibration,
         Port::Imu,
         Port::Wheel,
         Port::Truth,
+        Port::Gps,
     ];
 
     /// The output's name.
@@ -53,6 +56,7 @@ impl Port {
             Port::Imu => "imu",
             Port::Wheel => "wheel",
             Port::Truth => "truth",
+            Port::Gps => "gps",
         }
     }
 
@@ -64,6 +68,7 @@ impl Port {
             Port::Imu => Imu::TYPE_NAME,
             Port::Wheel => WheelOdometry::TYPE_NAME,
             Port::Truth => PoseStamped::TYPE_NAME,
+            Port::Gps => Odometry::TYPE_NAME,
         }
     }
 
@@ -76,6 +81,7 @@ impl Port {
             Port::Imu => "/imu/data",
             Port::Wheel => "/wheel/odometry",
             Port::Truth => "/truth/pose",
+            Port::Gps => "/gps/odometry",
         }
     }
 }
@@ -97,6 +103,8 @@ pub struct TopicMap {
     pub wheel: Option<String>,
     /// `truth` output (PoseStamped).
     pub truth: Option<String>,
+    /// `gps` output (Odometry).
+    pub gps: Option<String>,
 }
 
 /// How [`load`] turns a source into messages where the file does not say everything. The
@@ -380,6 +388,7 @@ fn mcap_topics(rec: &Recording, map: &TopicMap) -> Vec<(Port, String)> {
         (Port::Imu, &map.imu),
         (Port::Wheel, &map.wheel),
         (Port::Truth, &map.truth),
+        (Port::Gps, &map.gps),
     ];
     explicit
         .into_iter()

@@ -8,6 +8,7 @@ pub mod convert;
 pub mod diff;
 pub mod eval;
 pub mod experiment;
+pub mod lgpr_eval;
 pub mod plot;
 pub mod radargram;
 pub mod sim;
@@ -21,7 +22,7 @@ use gprflow::stage::{NodeSpec, RunReport, Stage, StageCatalog, StageError, Stage
 use gprflow_dsp::node::{DspStage, DspSubmapStage};
 use gprflow_estimate::node::EstimateStage;
 use gprflow_ingest::node::IngestStage;
-use gprflow_lgpr::node::LgprDspStage;
+use gprflow_lgpr::node::{LgprDspStage, LgprMapStage, LgprTrackStage};
 use gprflow_lines::node::LinesStage;
 use gprflow_register::node::RegisterStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
@@ -73,6 +74,8 @@ const STAGES: &[Kind] = &[
     kind::<DspStage>(),
     kind::<DspSubmapStage>(),
     kind::<LgprDspStage>(),
+    kind::<LgprMapStage>(),
+    kind::<LgprTrackStage>(),
     kind::<RegisterStage>(),
     kind::<LinesStage>(),
     kind::<RecordStage>(),

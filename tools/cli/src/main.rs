@@ -176,6 +176,28 @@ enum Command {
         #[arg(long, value_name = "TOPIC")]
         also: Vec<String>,
     },
+    /// LGPR tracking accuracy against the mapping pass (seed 001 eq. 11): along-, cross-track
+    /// and total RMS over distance for the LGPR and the GPS/INS, lock share, and the paper's
+    /// figures (error vs speed, error CDF, error vs correlation, error vs lateral offset).
+    ///
+    /// Example: gprflow lgpr-eval out/lgpr-track.mcap --baseline out/highway-map.mcap --plot-dir out/lgpr-figures
+    LgprEval {
+        /// Tracking runs (recordings of graphs/lgpr-track.yaml: map fixes, truth, GPS/INS).
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+        /// The mapping pass's recording (its truth and GPS/INS).
+        #[arg(long)]
+        baseline: PathBuf,
+        /// Largest true lateral offset from the mapping pass evaluated, m (seed 001: 1.3).
+        #[arg(long, default_value_t = 1.3)]
+        max_offset_m: f64,
+        /// Output format.
+        #[arg(long, value_enum, default_value = "text")]
+        format: gprflow_cli::eval::ReportFormat,
+        /// Write the figures (PNG) into this directory.
+        #[arg(long, value_name = "DIR")]
+        plot_dir: Option<PathBuf>,
+    },
     /// The wheel's scale (true ground metres per recorded wheel metre) against ground truth,
     /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
     /// `wheel_scale`).
@@ -411,6 +433,19 @@ fn main() -> ExitCode {
             write_tum,
             plot,
             also,
+        }),
+        Command::LgprEval {
+            runs,
+            baseline,
+            max_offset_m,
+            format,
+            plot_dir,
+        } => gprflow_cli::lgpr_eval::lgpr_eval_command(&gprflow_cli::lgpr_eval::LgprEvalArgs {
+            runs,
+            baseline,
+            max_offset_m,
+            format,
+            plot_dir,
         }),
         Command::CalibrateWheel {
             recordings,

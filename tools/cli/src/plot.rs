@@ -281,3 +281,60 @@ pub fn radargram(path: &Path, traces: &[Vec<f32>], features: &[Feature], pixels_
         .with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }
+
+/// How [`chart`] draws a series.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Style {
+    /// Joined by lines.
+    Lines,
+    /// Small dots.
+    Points,
+}
+
+/// One chart of `series` (the first drawn first), axes labelled `x_desc` and `y_desc`, into
+/// a PNG.
+///
+/// # Errors
+/// No font for labels, or the image cannot be written.
+pub fn chart(path: &Path, title: &str, x_desc: &str, y_desc: &str, series: &[(Series, Style)]) -> Result<()> {
+    register_font()?;
+    let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
+    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    root.fill(&WHITE).map_err(|e| draw(&e))?;
+    let (x0, x1, y0, y1) = bounds(&series.iter().map(|(s, _)| s).collect::<Vec<_>>());
+    let mut chart = ChartBuilder::on(&root)
+        .margin(14)
+        .caption(title, ("sans-serif", 20))
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(x0..x1, y0.min(0.0)..y1)
+        .map_err(|e| draw(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    for (i, (s, style)) in series.iter().enumerate() {
+        let color = COLORS[(i + 1) % COLORS.len()];
+        let anno = match style {
+            Style::Lines => chart
+                .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
+                .map_err(|e| draw(&e))?,
+            Style::Points => chart
+                .draw_series(s.points.iter().map(|&p| Circle::new(p, 1, color.mix(0.5).filled())))
+                .map_err(|e| draw(&e))?,
+        };
+        anno.label(s.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    root.present()
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    Ok(())
+}

@@ -1,0 +1,335 @@
+//! The `lgpr_map` stage (seed 001 §2.2): processed sweeps of a mapping pass placed by the
+//! GPS/INS (or, when asked, by any pose source such as the ground truth) and written to a map
+//! store, each channel's column at its element's world position.
+//!
+//! A sweep is placed by interpolating the two poses around its stamp, so it waits (at most
+//! one pose interval) for the pose after it. Sweeps before the first pose or after the last
+//! cannot be placed and are counted, as are unusable sweeps (wrong domain, sizes, NaN).
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+
+use gprflow_msg::{Message, Odometry, PoseStamped, Quaternion, Sweep};
+use gprflow_stage::{Drops, Input, InputPorts, InputSpec, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
+use serde::Deserialize;
+
+use crate::array::ArrayGeometry;
+use crate::map::MapWriter;
+
+/// Parameters of `lgpr_map`.
+#[derive(Debug, Clone, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LgprMapParams {
+    /// The map directory: created, or opened to add this pass.
+    pub map: PathBuf,
+    /// The array's geometry on the vehicle.
+    #[serde(default)]
+    pub array: ArrayGeometry,
+    /// Tile size of a new map, m. Default 50.
+    #[serde(default = "default_tile")]
+    pub tile_m: f64,
+    /// Skip sweeps less than this far (m) from the last one written (0: keep every sweep;
+    /// seed 001 §2.2 notes sparser maps may do). Default 0.
+    #[serde(default)]
+    pub min_spacing_m: f64,
+}
+
+fn default_tile() -> f64 {
+    50.0
+}
+
+/// A pose at a stamp: world position and heading.
+#[derive(Debug, Clone, Copy)]
+struct Placed {
+    stamp_ns: i64,
+    x: f64,
+    y: f64,
+    yaw: f64,
+}
+
+/// Heading of a unit quaternion.
+pub(crate) fn yaw_of(q: &Quaternion) -> f64 {
+    (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+}
+
+fn interpolate(a: &Placed, b: &Placed, stamp_ns: i64) -> Placed {
+    let span = (b.stamp_ns - a.stamp_ns) as f64;
+    let f = if span > 0.0 { (stamp_ns - a.stamp_ns) as f64 / span } else { 0.0 };
+    let mut dyaw = b.yaw - a.yaw;
+    dyaw = (dyaw + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+    Placed {
+        stamp_ns,
+        x: a.x + f * (b.x - a.x),
+        y: a.y + f * (b.y - a.y),
+        yaw: a.yaw + f * dyaw,
+    }
+}
+
+/// The `lgpr_map` stage.
+#[derive(Debug)]
+pub struct LgprMapStage {
+    params: LgprMapParams,
+    writer: Option<MapWriter>,
+    /// The last pose and the one before.
+    poses: (Option<Placed>, Option<Placed>),
+    /// Sweeps waiting for the pose after them: (stamp, seq, channels, samples).
+    waiting: VecDeque<(i64, u64, usize, Vec<f32>)>,
+    samples: usize,
+    sample_interval_ns: f64,
+    last_written: Option<(f64, f64)>,
+    sweeps_written: u64,
+    before_first_pose: u64,
+    skipped_close: u64,
+    drops: Drops,
+}
+
+impl LgprMapStage {
+    fn on_pose(&mut self, p: Placed) -> Result<(), StageError> {
+        if let Some(last) = self.poses.1
+            && p.stamp_ns <= last.stamp_ns
+        {
+            return Ok(());
+        }
+        self.poses = (self.poses.1, Some(p));
+        let (Some(a), Some(b)) = self.poses else {
+            return Ok(());
+        };
+        while let Some(&(stamp, _, _, _)) = self.waiting.front() {
+            if stamp > b.stamp_ns {
+                break;
+            }
+            let Some((stamp, _seq, channels, values)) = self.waiting.pop_front() else {
+                break;
+            };
+            if stamp < a.stamp_ns {
+                self.before_first_pose += 1;
+                continue;
+            }
+            self.write(&interpolate(&a, &b, stamp), channels, &values)?;
+        }
+        Ok(())
+    }
+
+    fn write(&mut self, at: &Placed, channels: usize, values: &[f32]) -> Result<(), StageError> {
+        let (bx, by) = (self.params.array.mount_m[0], self.params.array.mount_m[1]);
+        let centre = ArrayGeometry::to_world(at.x, at.y, at.yaw, bx, by);
+        if let Some(prev) = self.last_written {
+            let step = (centre.0 - prev.0).hypot(centre.1 - prev.1);
+            if step < self.params.min_spacing_m {
+                self.skipped_close += 1;
+                return Ok(());
+            }
+        }
+        let writer = match &mut self.writer {
+            Some(w) => w,
+            None => {
+                let w = MapWriter::open(
+                    &self.params.map,
+                    self.params.tile_m,
+                    self.samples as u32,
+                    self.sample_interval_ns,
+                )
+                .map_err(StageError::failed)?;
+                tracing::info!(map = %self.params.map.display(), pass = w.info().passes, "lgpr_map: writing");
+                self.writer.insert(w)
+            }
+        };
+        if let Some(prev) = self.last_written {
+            writer.add_length((centre.0 - prev.0).hypot(centre.1 - prev.1));
+        }
+        for k in 0..channels {
+            let (x, y) = ArrayGeometry::to_world(at.x, at.y, at.yaw, bx, self.params.array.channel_y_m(k, channels));
+            let column = &values[k * self.samples..(k + 1) * self.samples];
+            writer
+                .push(x, y, at.stamp_ns, k as u16, column)
+                .map_err(StageError::failed)?;
+        }
+        self.last_written = Some(centre);
+        self.sweeps_written += 1;
+        Ok(())
+    }
+
+    fn on_sweep(&mut self, input: &Input<'_>, s: &Sweep<'_>) {
+        if s.domain != Sweep::DOMAIN_TIME {
+            self.drops.record(Self::NAME, input, &format_args!("domain {}: not a time-domain sweep", s.domain));
+            return;
+        }
+        let (channels, samples) = (s.channel_count as usize, s.bin_count as usize);
+        if channels == 0 || samples == 0 || s.values.len() != channels * samples {
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!("{} values for {channels} channels x {samples} samples", s.values.len()),
+            );
+            return;
+        }
+        if self.samples == 0 {
+            self.samples = samples;
+            self.sample_interval_ns = s.sample_interval_ns;
+        } else if samples != self.samples || s.sample_interval_ns != self.sample_interval_ns {
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!(
+                    "{samples} samples {} ns apart, the pass so far {} {} ns apart",
+                    s.sample_interval_ns, self.samples, self.sample_interval_ns
+                ),
+            );
+            return;
+        }
+        if let Some(n) = s.values.iter().position(|v| !v.is_finite()) {
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!("channel {} sample {} is {}", n / samples, n % samples, s.values[n]),
+            );
+            return;
+        }
+        if self.poses.1.is_none() {
+            self.before_first_pose += 1;
+            return;
+        }
+        self.waiting
+            .push_back((input.stamp_ns(), input.seq(), channels, s.values.to_vec()));
+    }
+}
+
+impl Stage for LgprMapStage {
+    type Params = LgprMapParams;
+    const NAME: &'static str = "lgpr_map";
+    const ABOUT: &'static str =
+        "LGPR mapping: processed sweeps placed by the GPS/INS (or a pose source) into an on-disk map store";
+
+    fn inputs() -> InputPorts {
+        let port = |name: &str, ty: &str, optional: bool| InputSpec {
+            port: PortSpec::new(name, ty),
+            optional,
+        };
+        InputPorts::Fixed(vec![
+            port("ins", Odometry::TYPE_NAME, true),
+            port("pose", PoseStamped::TYPE_NAME, true),
+            port("sweep", Sweep::TYPE_NAME, false),
+        ])
+    }
+
+    fn outputs(_: &Self::Params) -> Result<Vec<PortSpec>, ParamError> {
+        Ok(Vec::new())
+    }
+
+    fn check_params(p: &Self::Params) -> Result<(), ParamError> {
+        use gprflow_stage::params::{non_negative, positive};
+        if p.map.as_os_str().is_empty() {
+            return Err(ParamError::new("map", "must name a directory"));
+        }
+        p.array.check("array").map_err(to_param)?;
+        positive("tile_m", p.tile_m)?;
+        non_negative("min_spacing_m", p.min_spacing_m)?;
+        Ok(())
+    }
+
+    fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
+        let sources = usize::from(ports.input("ins").is_some()) + usize::from(ports.input("pose").is_some());
+        if sources != 1 {
+            return Err(StageError::failed(
+                "lgpr_map: connect exactly one pose source, `ins` (GPS/INS Odometry) or `pose` (PoseStamped)",
+            ));
+        }
+        Ok(Self {
+            params,
+            writer: None,
+            poses: (None, None),
+            waiting: VecDeque::new(),
+            samples: 0,
+            sample_interval_ns: 0.0,
+            last_written: None,
+            sweeps_written: 0,
+            before_first_pose: 0,
+            skipped_close: 0,
+            drops: Drops::new(),
+        })
+    }
+
+    fn on_message(&mut self, input: Input<'_>, _out: &mut Outputs) -> Result<(), StageError> {
+        match input.name() {
+            "ins" => {
+                let m: Odometry = input.decode()?;
+                let p = &m.pose.pose;
+                let placed = Placed {
+                    stamp_ns: input.stamp_ns(),
+                    x: p.position.x,
+                    y: p.position.y,
+                    yaw: yaw_of(&p.orientation),
+                };
+                if [placed.x, placed.y, placed.yaw].iter().all(|v| v.is_finite()) {
+                    self.on_pose(placed)?;
+                } else {
+                    self.drops.record(Self::NAME, &input, &"non-finite position or orientation");
+                }
+            }
+            "pose" => {
+                let m: PoseStamped = input.decode()?;
+                let placed = Placed {
+                    stamp_ns: input.stamp_ns(),
+                    x: m.pose.position.x,
+                    y: m.pose.position.y,
+                    yaw: yaw_of(&m.pose.orientation),
+                };
+                if [placed.x, placed.y, placed.yaw].iter().all(|v| v.is_finite()) {
+                    self.on_pose(placed)?;
+                } else {
+                    self.drops.record(Self::NAME, &input, &"non-finite position or orientation");
+                }
+            }
+            "sweep" => {
+                let s: Sweep = input.decode()?;
+                self.on_sweep(&input, &s);
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, _out: &mut Outputs) -> Result<(), StageError> {
+        let after_last_pose = self.waiting.len();
+        self.waiting.clear();
+        self.drops.report(Self::NAME);
+        if self.before_first_pose + after_last_pose as u64 > 0 {
+            tracing::warn!(
+                before_first_pose = self.before_first_pose,
+                after_last_pose,
+                "lgpr_map: sweeps outside the poses' time span could not be placed"
+            );
+        }
+        let Some(writer) = self.writer.take() else {
+            tracing::warn!(map = %self.params.map.display(), "lgpr_map: no sweep placed; nothing written");
+            return Ok(());
+        };
+        let dir = self.params.map.clone();
+        let info = writer.finish().map_err(StageError::failed)?;
+        let bytes = crate::map::MapReader::open(&dir)
+            .and_then(|r| r.tiles())
+            .map(|t| t.values().sum::<u64>())
+            .map_err(StageError::failed)?;
+        let km = info.length_m / 1000.0;
+        tracing::info!(
+            map = %dir.display(),
+            sweeps = self.sweeps_written,
+            skipped_close = self.skipped_close,
+            columns = info.columns,
+            length_m = format!("{:.1}", info.length_m),
+            bytes,
+            mb_per_km = format!("{:.1}", if km > 0.0 { bytes as f64 / 1e6 / km } else { 0.0 }),
+            passes = info.passes,
+            "lgpr_map: map written"
+        );
+        Ok(())
+    }
+}
+
+/// A library parameter error as the stage reports it.
+pub(crate) fn to_param(e: crate::Error) -> ParamError {
+    match e {
+        crate::Error::Param(p) => p,
+        other => ParamError::new("", other.to_string()),
+    }
+}

@@ -1,0 +1,236 @@
+//! `gprflow lgpr-eval`: LGPR tracking runs measured as seed 001 §3 does (eq. 11; Tables IV-V,
+//! Figs. 15, 17, 18, 19), against the mapping pass they were tracked on.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result, bail};
+use gprflow::eval::Trajectory;
+use gprflow::eval::lgpr::{Fixes, Options, Sample, Summary, Tracks, evaluate, summarise};
+use gprflow::msg::{Odometry, PoseStamped};
+use gprflow::record::Recording;
+use serde::Serialize;
+
+use crate::eval::ReportFormat;
+use crate::plot::{Series, Style, chart};
+
+/// Arguments of `gprflow lgpr-eval`.
+#[derive(Debug, Clone)]
+pub struct LgprEvalArgs {
+    /// Tracking runs: recordings with the map fixes, the pass's truth and its GPS/INS.
+    pub runs: Vec<PathBuf>,
+    /// The mapping pass (its truth and GPS/INS).
+    pub baseline: PathBuf,
+    /// Largest true lateral offset from the baseline kept, m.
+    pub max_offset_m: f64,
+    /// Output format.
+    pub format: ReportFormat,
+    /// Write the figures (PNG) into this directory.
+    pub plot_dir: Option<PathBuf>,
+}
+
+/// One run's row.
+#[derive(Debug, Clone, Serialize)]
+struct Row {
+    run: String,
+    #[serde(flatten)]
+    summary: Summary,
+}
+
+/// The truth (a PoseStamped topic named `truth`) and the GPS/INS (an Odometry topic) of a
+/// recording.
+fn truth_and_gps(path: &Path) -> Result<(Trajectory, Trajectory)> {
+    let rec = Recording::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
+    let topics = rec.topics();
+    let find = |ty: &str, want: &dyn Fn(&str) -> bool, what: &str| {
+        topics
+            .iter()
+            .find(|(t, ty2)| ty2 == ty && want(t))
+            .map(|(t, _)| t.clone())
+            .with_context(|| format!("{}: no {what} topic", path.display()))
+    };
+    let truth = find(PoseStamped::ROS_NAME, &|t: &str| t.contains("truth"), "ground-truth (PoseStamped)")?;
+    let gps = find(Odometry::ROS_NAME, &|_: &str| true, "GPS/INS (Odometry)")?;
+    Ok((Trajectory::from_recording(&rec, &truth)?, Trajectory::from_recording(&rec, &gps)?))
+}
+
+fn cm(v: f64) -> String {
+    format!("{:.1}", v * 100.0)
+}
+
+/// Runs `gprflow lgpr-eval`.
+///
+/// # Errors
+/// Unreadable recordings, missing topics, no evaluable fix, unwritable figures.
+pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
+    let (base_truth, base_gps) = truth_and_gps(&args.baseline)?;
+    let opts = Options {
+        max_offset_m: args.max_offset_m,
+        ..Options::default()
+    };
+    let mut rows = Vec::new();
+    let mut all: Vec<(String, Vec<Sample>)> = Vec::new();
+    for run in &args.runs {
+        let rec = Recording::open(run).with_context(|| format!("{}: cannot open", run.display()))?;
+        let fixes = Fixes::from_recording(&rec, None)?;
+        let (track_truth, track_gps) = truth_and_gps(run)?;
+        let tracks = Tracks {
+            track_truth: &track_truth,
+            track_gps: &track_gps,
+            base_truth: &base_truth,
+            base_gps: &base_gps,
+        };
+        let samples = evaluate(&fixes, tracks, opts);
+        let name = run.file_stem().map_or_else(|| run.display().to_string(), |s| s.to_string_lossy().into_owned());
+        let Some(summary) = summarise(&samples) else {
+            bail!(
+                "{}: no fix to evaluate ({} fixes; none locked, or none within {} m of the baseline)",
+                run.display(),
+                fixes.stamps_ns.len(),
+                args.max_offset_m
+            );
+        };
+        rows.push(Row { run: name.clone(), summary });
+        all.push((name, samples));
+    }
+    let pooled: Vec<Sample> = all.iter().flat_map(|(_, s)| s.iter().copied()).collect();
+    if rows.len() > 1
+        && let Some(summary) = summarise(&pooled)
+    {
+        rows.push(Row {
+            run: "all".into(),
+            summary,
+        });
+    }
+    let mut out = std::io::stdout().lock();
+    match args.format {
+        ReportFormat::Json => {
+            serde_json::to_writer_pretty(&mut out, &rows)?;
+            writeln!(out)?;
+        }
+        ReportFormat::Text | ReportFormat::Markdown => {
+            let md = args.format == ReportFormat::Markdown;
+            let header = [
+                "run", "km/h", "fixes", "dist m", "lock %", "LGPR cross", "along", "total", "68% cross", "95% cross",
+                "GPS/INS cross", "along", "total",
+            ];
+            if md {
+                writeln!(out, "| {} |", header.join(" | "))?;
+                writeln!(out, "|{}", "---|".repeat(header.len()))?;
+            } else {
+                writeln!(out, "RMS errors in cm over distance (seed 001 eq. 11)")?;
+                writeln!(out, "{}", header.map(|h| format!("{h:>13}")).join(""))?;
+            }
+            for r in &rows {
+                let s = &r.summary;
+                let cells = [
+                    r.run.clone(),
+                    format!("{:.0}", s.mean_speed_mps * 3.6),
+                    s.fixes.to_string(),
+                    format!("{:.0}", s.distance_m),
+                    format!("{:.2}", s.locked_pct),
+                    cm(s.lgpr.cross_m),
+                    cm(s.lgpr.along_m),
+                    cm(s.lgpr.total_m),
+                    cm(s.cross_p68_m),
+                    cm(s.cross_p95_m),
+                    cm(s.gps.cross_m),
+                    cm(s.gps.along_m),
+                    cm(s.gps.total_m),
+                ];
+                if md {
+                    writeln!(out, "| {} |", cells.join(" | "))?;
+                } else {
+                    writeln!(out, "{}", cells.map(|c| format!("{c:>13}")).join(""))?;
+                }
+            }
+        }
+    }
+    if let Some(dir) = &args.plot_dir {
+        figures(dir, &all)?;
+        writeln!(out, "figures in {}", dir.display())?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Figs. 15, 17, 18 and 19 of seed 001 from the runs' samples.
+fn figures(dir: &Path, runs: &[(String, Vec<Sample>)]) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let pooled: Vec<&Sample> = runs.iter().flat_map(|(_, s)| s.iter()).collect();
+    let points = |label: &str, f: &dyn Fn(&Sample) -> (f64, f64)| Series {
+        label: label.into(),
+        points: pooled.iter().map(|s| f(s)).collect(),
+    };
+    // Fig. 15: error against speed, with the RMS per 8 km/h bin
+    let mut bins: std::collections::BTreeMap<i64, (f64, f64)> = std::collections::BTreeMap::new();
+    for s in &pooled {
+        let b = bins.entry((s.speed_mps * 3.6 / 8.0).floor() as i64).or_default();
+        b.0 += s.weight_m * (s.lgpr[0].powi(2) + s.lgpr[1].powi(2));
+        b.1 += s.weight_m;
+    }
+    let rms_bins = Series {
+        label: "LGPR total RMS per 8 km/h".into(),
+        points: bins
+            .iter()
+            .filter(|(_, (_, w))| *w > 0.0)
+            .map(|(b, (e, w))| ((*b as f64 + 0.5) * 8.0, 100.0 * (e / w).sqrt()))
+            .collect(),
+    };
+    chart(
+        &dir.join("fig15-error-vs-speed.png"),
+        "LGPR error vs speed (Fig. 15)",
+        "true speed (km/h)",
+        "error (cm)",
+        &[
+            (points("LGPR total error", &|s| (s.speed_mps * 3.6, 100.0 * s.lgpr[0].hypot(s.lgpr[1]))), Style::Points),
+            (rms_bins, Style::Lines),
+        ],
+    )?;
+    // Fig. 17: cumulative distribution of |cross| and |along| over distance
+    let cdf = |label: &str, pick: fn(&Sample) -> f64| {
+        let mut v: Vec<(f64, f64)> = pooled.iter().map(|s| (100.0 * pick(s).abs(), s.weight_m)).collect();
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let total: f64 = v.iter().map(|x| x.1).sum::<f64>().max(1e-12);
+        let mut acc = 0.0;
+        Series {
+            label: label.into(),
+            points: v
+                .into_iter()
+                .map(|(x, w)| {
+                    acc += w;
+                    (x, 100.0 * acc / total)
+                })
+                .collect(),
+        }
+    };
+    chart(
+        &dir.join("fig17-error-cdf.png"),
+        "Cumulative distribution of LGPR error over distance (Fig. 17)",
+        "|error| (cm)",
+        "% of distance",
+        &[
+            (cdf("cross-track", |s| s.lgpr[1]), Style::Lines),
+            (cdf("along-track", |s| s.lgpr[0]), Style::Lines),
+            (cdf("GPS/INS cross-track", |s| s.gps[1]), Style::Lines),
+        ],
+    )?;
+    chart(
+        &dir.join("fig18-error-vs-correlation.png"),
+        "Cross-track error vs correlation (Fig. 18)",
+        "correlation",
+        "|cross-track error| (cm)",
+        &[(points("LGPR", &|s| (s.correlation, 100.0 * s.lgpr[1].abs())), Style::Points)],
+    )?;
+    chart(
+        &dir.join("fig19-error-vs-offset.png"),
+        "Error vs lateral offset from the mapping pass (Fig. 19)",
+        "lateral offset (m)",
+        "|error| (cm)",
+        &[
+            (points("cross-track", &|s| (s.offset_m, 100.0 * s.lgpr[1].abs())), Style::Points),
+            (points("along-track", &|s| (s.offset_m, 100.0 * s.lgpr[0].abs())), Style::Points),
+        ],
+    )?;
+    Ok(())
+}
