@@ -83,7 +83,7 @@ mod tests {
             element_spacing_m: 0.0,
             ..ArrayGeometry::default()
         };
-        let e = g.check("array").unwrap_err().to_string();
+        let e = g.check("array").expect_err("must fail").to_string();
         assert!(e.contains("array.element_spacing_m"), "{e}");
     }
 }

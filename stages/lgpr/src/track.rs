@@ -513,13 +513,15 @@ mod tests {
     fn parameter_checks_name_the_key() {
         let mut p = TrackParams::default();
         p.search_min.xy_m = 5.0;
-        assert!(p.check().unwrap_err().to_string().contains("search_min"));
+        assert!(p.check().expect_err("must fail").to_string().contains("search_min"));
         let mut p = TrackParams::default();
         p.swarm.inertia_start = 1.5;
-        assert!(p.check().unwrap_err().to_string().contains("swarm.inertia_start"));
-        let mut p = TrackParams::default();
-        p.lock_correlation = f64::NAN;
-        assert!(p.check().unwrap_err().to_string().contains("lock_correlation"));
+        assert!(p.check().expect_err("must fail").to_string().contains("swarm.inertia_start"));
+        let p = TrackParams {
+            lock_correlation: f64::NAN,
+            ..TrackParams::default()
+        };
+        assert!(p.check().expect_err("must fail").to_string().contains("lock_correlation"));
         assert!(TrackParams::default().check().is_ok());
     }
 }

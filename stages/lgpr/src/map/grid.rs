@@ -259,13 +259,13 @@ mod tests {
         let p = [origin[0] + 10.0 * 0.05, origin[1] + 10.0 * 0.05];
         let cols = columns(&[([p[0] - 0.03, p[1]], 1.0), ([p[0] + 0.07, p[1]], 4.0)], 3);
         let g = LocalGrid::build(&spec, [0.0, 0.0], 3, &[&cols]);
-        let s = g.slot_at(p[0], p[1]).unwrap();
+        let s = g.slot_at(p[0], p[1]).expect("must succeed");
         let (w1, w2) = (1.0 / 0.03, 1.0 / 0.07);
         let want = (w1 * 1.0 + w2 * 4.0) / (w1 + w2);
         assert!((f64::from(g.column(s)[0]) - want).abs() < 1e-5, "{} vs {want}", g.column(s)[0]);
         // a point 0.17 m from the nearest is empty; one 0.07 m from only the first has its value
         assert!(g.slot_at(p[0] - 0.2, p[1]).is_none());
-        let s = g.slot_at(p[0] - 0.1, p[1]).unwrap();
+        let s = g.slot_at(p[0] - 0.1, p[1]).expect("must succeed");
         assert!((g.column(s)[2] - 1.0).abs() < 1e-6);
         // outside the grid
         assert!(g.slot_at(5.0, 0.0).is_none());
@@ -281,7 +281,7 @@ mod tests {
         let on = [origin[0] + 0.5, origin[1] + 0.5];
         let cols = columns(&[(on, 2.0), ([on[0] + 0.1, on[1]], -8.0)], 1);
         let g = LocalGrid::build(&spec, [3.0, 4.0], 1, &[&cols]);
-        let v = g.column(g.slot_at(on[0], on[1]).unwrap())[0];
+        let v = g.column(g.slot_at(on[0], on[1]).expect("must succeed"))[0];
         assert!(v.is_finite() && (v - 2.0).abs() < 0.11, "{v}");
     }
 
@@ -291,11 +291,11 @@ mod tests {
             radius_m: 0.01,
             ..GridSpec::default()
         };
-        assert!(bad.check("grid").unwrap_err().to_string().contains("grid.radius_m"));
+        assert!(bad.check("grid").expect_err("must fail").to_string().contains("grid.radius_m"));
         let bad = GridSpec {
             spacing_m: f64::NAN,
             ..GridSpec::default()
         };
-        assert!(bad.check("grid").unwrap_err().to_string().contains("grid.spacing_m"));
+        assert!(bad.check("grid").expect_err("must fail").to_string().contains("grid.spacing_m"));
     }
 }

@@ -10,7 +10,7 @@
 //! between request and edge, 0.55 s, to grid.
 
 use std::sync::Arc;
-use std::sync::mpsc::{Receiver, Sender, channel};
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -54,7 +54,7 @@ pub struct GridPager {
     spec: GridSpec,
     current: Option<Arc<LocalGrid>>,
     next: Option<Gridded>,
-    requests: Sender<[f64; 2]>,
+    requests: SyncSender<[f64; 2]>,
     results: Receiver<Result<Gridded, StoreError>>,
     pending: bool,
     worker: Option<JoinHandle<()>>,
@@ -69,8 +69,9 @@ pub struct GridPager {
 impl GridPager {
     /// A pager on `map` with grids of `spec`; starts its worker thread.
     pub fn new(map: MapReader, spec: GridSpec) -> Self {
-        let (req_tx, req_rx) = channel::<[f64; 2]>();
-        let (res_tx, res_rx) = channel();
+        // one request at a time is outstanding (`pending`): two slots never block
+        let (req_tx, req_rx) = sync_channel::<[f64; 2]>(2);
+        let (res_tx, res_rx) = sync_channel(2);
         let worker_spec = spec.clone();
         let worker = std::thread::Builder::new()
             .name("lgpr-grid".into())
@@ -195,7 +196,7 @@ impl GridPager {
 impl Drop for GridPager {
     fn drop(&mut self) {
         // closing the request channel ends the worker
-        let (tx, _) = channel();
+        let (tx, _) = sync_channel(0);
         drop(std::mem::replace(&mut self.requests, tx));
         if let Some(w) = self.worker.take() {
             let _ = w.join();
@@ -210,25 +211,25 @@ mod tests {
 
     #[test]
     fn a_long_drive_keeps_two_grids_and_never_stalls_at_walking_pace() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 8, 0.2)).unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 8, 0.2)).expect("must succeed");
         for i in 0..4000 {
-            w.push(i as f64 * 0.1, 0.0, i, 0, &[1.0; 8]).unwrap();
+            w.push(i as f64 * 0.1, 0.0, i, 0, &[1.0; 8]).expect("must succeed");
         }
-        w.finish().unwrap();
+        w.finish().expect("must succeed");
         let spec = GridSpec {
             size_m: 20.0,
             ..GridSpec::default()
         };
-        let mut pager = GridPager::new(MapReader::open(dir.path()).unwrap(), spec);
+        let mut pager = GridPager::new(MapReader::open(dir.path()).expect("must succeed"), spec);
         let mut switches = 0;
         for step in 0..3900 {
             let x = step as f64 * 0.1;
-            let ev = pager.update([x, 0.0], [1.0, 0.0]).unwrap();
+            let ev = pager.update([x, 0.0], [1.0, 0.0]).expect("must succeed");
             if ev.switched {
                 switches += 1;
             }
-            let g = pager.current().unwrap();
+            let g = pager.current().expect("must succeed");
             assert!(g.slot_at(x, 0.0).is_some(), "no map under the vehicle at {x}");
             assert!(g.distance_from_centre(x, 0.0) <= 5.0 + 1e-9, "{x} vs {:?}", g.centre());
             // give the worker time, as the time between sweeps would

@@ -647,10 +647,8 @@ impl MapReader {
                 break;
             }
             raw.clear();
-            match zstd::bulk::decompress_to_buffer(compressed, &mut {
-                raw.resize(raw_len, 0);
-                &mut raw[..]
-            }) {
+            raw.resize(raw_len, 0);
+            match zstd::bulk::decompress_to_buffer(compressed, &mut raw[..]) {
                 Ok(n) if n == raw_len => {}
                 Ok(n) => {
                     read.damage = Some(corrupt(format!("{n} bytes decompressed, {raw_len} declared")));
@@ -701,21 +699,21 @@ mod tests {
 
     #[test]
     fn columns_round_trip_within_a_quantisation_step() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 40, 0.163)).unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 40, 0.163)).expect("must succeed");
         for i in 0..3000 {
             let x = i as f64 * 0.04 - 10.0; // crosses tile x = -1 / 0 / 1 / 2
-            w.push(x, 3.0, i as i64, (i % 11) as u16, &column(i, 40)).unwrap();
+            w.push(x, 3.0, i as i64, (i % 11) as u16, &column(i, 40)).expect("must succeed");
         }
         w.add_length(120.0);
-        let info = w.finish().unwrap();
+        let info = w.finish().expect("must succeed");
         assert_eq!(info.columns, 3000);
-        let r = MapReader::open(dir.path()).unwrap();
-        let tiles = r.tiles().unwrap();
+        let r = MapReader::open(dir.path()).expect("must succeed");
+        let tiles = r.tiles().expect("must succeed");
         assert_eq!(tiles.keys().map(|k| k.ix).collect::<Vec<_>>(), vec![-1, 0, 1, 2]);
         let mut seen = 0;
         for key in tiles.keys() {
-            let t = r.read_tile(*key, None).unwrap();
+            let t = r.read_tile(*key, None).expect("must succeed");
             assert!(t.damage.is_none());
             for c in 0..t.columns.len() {
                 let i = t.columns.stamps_ns[c] as usize;
@@ -730,7 +728,7 @@ mod tests {
         }
         assert_eq!(seen, 3000);
         // a window keeps only what is inside
-        let t = r.read_tile(TileKey { ix: 0, iy: 0 }, Some([0.0, 0.0, 10.0, 10.0])).unwrap();
+        let t = r.read_tile(TileKey { ix: 0, iy: 0 }, Some([0.0, 0.0, 10.0, 10.0])).expect("must succeed");
         let inside = (0..3000)
             .map(|i| i as f64 * 0.04 - 10.0)
             .filter(|x| (0.0..=10.0).contains(x))
@@ -741,81 +739,81 @@ mod tests {
 
     #[test]
     fn a_cut_tile_keeps_its_complete_blocks_and_says_where() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).expect("must succeed");
         for i in 0..(BLOCK_COLUMNS + 100) {
-            w.push(1.0, 1.0, i as i64, 0, &column(i, 16)).unwrap();
+            w.push(1.0, 1.0, i as i64, 0, &column(i, 16)).expect("must succeed");
         }
-        w.finish().unwrap();
+        w.finish().expect("must succeed");
         let path = dir.path().join("tiles/0_0.tile");
-        let len = fs::metadata(&path).unwrap().len();
-        let f = OpenOptions::new().write(true).open(&path).unwrap();
-        f.set_len(len - 10).unwrap();
-        let r = MapReader::open(dir.path()).unwrap();
-        let t = r.read_tile(TileKey { ix: 0, iy: 0 }, None).unwrap();
+        let len = fs::metadata(&path).expect("must succeed").len();
+        let f = OpenOptions::new().write(true).open(&path).expect("must succeed");
+        f.set_len(len - 10).expect("must succeed");
+        let r = MapReader::open(dir.path()).expect("must succeed");
+        let t = r.read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
         assert_eq!(t.columns.len(), BLOCK_COLUMNS);
-        let e = t.damage.unwrap().to_string();
+        let e = t.damage.expect("must succeed").to_string();
         assert!(e.contains("0_0.tile") && e.contains("block 1") && e.contains("cut short"), "{e}");
     }
 
     #[test]
     fn a_flipped_byte_is_caught_by_the_crc() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).expect("must succeed");
         for i in 0..10 {
-            w.push(1.0, 1.0, i, 0, &column(i as usize, 16)).unwrap();
+            w.push(1.0, 1.0, i, 0, &column(i as usize, 16)).expect("must succeed");
         }
-        w.finish().unwrap();
+        w.finish().expect("must succeed");
         let path = dir.path().join("tiles/0_0.tile");
-        let mut bytes = fs::read(&path).unwrap();
+        let mut bytes = fs::read(&path).expect("must succeed");
         let last = bytes.len() - 1;
         bytes[last] ^= 0x55;
-        fs::write(&path, bytes).unwrap();
-        let t = MapReader::open(dir.path()).unwrap().read_tile(TileKey { ix: 0, iy: 0 }, None).unwrap();
+        fs::write(&path, bytes).expect("must succeed");
+        let t = MapReader::open(dir.path()).expect("must succeed").read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
         assert_eq!(t.columns.len(), 0);
-        assert!(t.damage.unwrap().to_string().contains("CRC"));
+        assert!(t.damage.expect("must succeed").to_string().contains("CRC"));
     }
 
     #[test]
     fn another_version_or_format_is_refused_by_name() {
-        let dir = tempfile::tempdir().unwrap();
-        MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).unwrap().finish().unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).expect("must succeed").finish().expect("must succeed");
         let path = dir.path().join("manifest.json");
-        let text = fs::read_to_string(&path).unwrap().replace("\"version\": 1", "\"version\": 7");
-        fs::write(&path, text).unwrap();
-        let e = MapReader::open(dir.path()).unwrap_err().to_string();
+        let text = fs::read_to_string(&path).expect("must succeed").replace("\"version\": 1", "\"version\": 7");
+        fs::write(&path, text).expect("must succeed");
+        let e = MapReader::open(dir.path()).expect_err("must fail").to_string();
         assert!(e.contains("manifest.json") && e.contains("version 7"), "{e}");
-        fs::write(&path, "{\"format\": \"something\"}").unwrap();
-        let e = MapReader::open(dir.path()).unwrap_err().to_string();
+        fs::write(&path, "{\"format\": \"something\"}").expect("must succeed");
+        let e = MapReader::open(dir.path()).expect_err("must fail").to_string();
         assert!(e.contains("format is \"something\""), "{e}");
-        fs::write(&path, "not json").unwrap();
-        assert!(MapReader::open(dir.path()).unwrap_err().to_string().contains("not a gprflow LGPR map"));
+        fs::write(&path, "not json").expect("must succeed");
+        assert!(MapReader::open(dir.path()).expect_err("must fail").to_string().contains("not a gprflow LGPR map"));
     }
 
     #[test]
     fn a_second_pass_appends_and_must_match() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::open(dir.path(), 50.0, 16, 0.2).unwrap();
-        w.push(1.0, 1.0, 0, 0, &column(0, 16)).unwrap();
-        w.finish().unwrap();
-        let mut w = MapWriter::open(dir.path(), 50.0, 16, 0.2).unwrap();
-        w.push(1.5, 1.0, 1, 0, &column(1, 16)).unwrap();
-        let info = w.finish().unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::open(dir.path(), 50.0, 16, 0.2).expect("must succeed");
+        w.push(1.0, 1.0, 0, 0, &column(0, 16)).expect("must succeed");
+        w.finish().expect("must succeed");
+        let mut w = MapWriter::open(dir.path(), 50.0, 16, 0.2).expect("must succeed");
+        w.push(1.5, 1.0, 1, 0, &column(1, 16)).expect("must succeed");
+        let info = w.finish().expect("must succeed");
         assert_eq!((info.passes, info.columns), (2, 2));
-        let t = MapReader::open(dir.path()).unwrap().read_tile(TileKey { ix: 0, iy: 0 }, None).unwrap();
+        let t = MapReader::open(dir.path()).expect("must succeed").read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
         assert_eq!(t.columns.len(), 2);
-        let e = MapWriter::open(dir.path(), 50.0, 17, 0.2).unwrap_err().to_string();
+        let e = MapWriter::open(dir.path(), 50.0, 17, 0.2).expect_err("must fail").to_string();
         assert!(e.contains("samples") && e.contains("16") && e.contains("17"), "{e}");
     }
 
     #[test]
     fn bad_columns_are_refused_before_anything_is_written() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 4, 0.2)).unwrap();
+        let dir = tempfile::tempdir().expect("must succeed");
+        let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 4, 0.2)).expect("must succeed");
         assert!(w.push(0.0, 0.0, 0, 0, &[0.0; 3]).is_err());
         assert!(w.push(f64::NAN, 0.0, 0, 0, &[0.0; 4]).is_err());
-        let e = w.push(0.0, 0.0, 0, 3, &[0.0, f32::NAN, 0.0, 0.0]).unwrap_err().to_string();
+        let e = w.push(0.0, 0.0, 0, 3, &[0.0, f32::NAN, 0.0, 0.0]).expect_err("must fail").to_string();
         assert!(e.contains("channel 3 sample 1"), "{e}");
-        assert_eq!(w.finish().unwrap().columns, 0);
+        assert_eq!(w.finish().expect("must succeed").columns, 0);
     }
 }

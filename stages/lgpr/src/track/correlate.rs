@@ -248,7 +248,7 @@ mod tests {
         let mut values = Vec::new();
         for k in 0..3 {
             let (wx, wy) = ArrayGeometry::to_world(pose[0], pose[1], pose[3], 0.0, geo.channel_y_m(k, 3));
-            values.extend_from_slice(g.column(g.slot_at(wx, wy).unwrap()));
+            values.extend_from_slice(g.column(g.slot_at(wx, wy).expect("must succeed")));
         }
         let mut sweep = PreparedSweep::new(&geo, 3, 4, 32);
         assert!(sweep.load(&values, samples));
