@@ -13,6 +13,7 @@ mod eval;
 mod golden;
 mod ingest;
 mod launch;
+mod lgpr;
 mod lines;
 mod localisation;
 mod peer;

@@ -18,6 +18,7 @@ use serde::Deserialize;
 
 pub use self::correlate::{C_M_PER_NS, Correlation, Correlator, Pose5, PreparedSweep};
 pub use self::pso::{SplitMix, Swarm, SwarmParams, SwarmResult};
+use crate::array::ArrayGeometry;
 use crate::error::{Error, param};
 use crate::map::LocalGrid;
 
@@ -99,8 +100,40 @@ pub struct TrackParams {
     pub sigma_locked_m: f64,
     /// Growth of the dead-reckoned position's standard deviation, m/s. Default 0.1.
     pub sigma_m_per_s: f64,
+    /// The travel-time stretch of wetter or drier soil than the map's.
+    pub stretch: StretchParams,
     /// Random seed of the swarm. Default 1.
     pub seed: u64,
+}
+
+/// The tracker's estimate of the travel-time stretch between the map and the sweeps: soil
+/// wetter than on the mapping pass is slower, so the sweeps' echoes from below the surface
+/// come late by a factor (`soil_moisture` 0.02 in the simulator: about 5 %), which
+/// decorrelates the deep part of the window (eq. 8 falls below the lock threshold). After each
+/// sweep's registration the stretch moves one `step` up or down when that raises the
+/// correlation at the registered pose, within `1 +- max`; sweeps are loaded with it
+/// ([`PreparedSweep::load_stretched`]).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
+#[serde(deny_unknown_fields, default)]
+pub struct StretchParams {
+    /// Largest stretch away from 1 (0: off). Default 0.1.
+    pub max: f64,
+    /// Step of the search per sweep. Default 0.004.
+    pub step: f64,
+    /// Time of the ground surface in the sweeps, ns (the stretch applies below it). Default 9
+    /// (the 8 ns delay of `lgpr_dsp` and the two-way path through 15 cm of air).
+    pub ground_ns: f64,
+}
+
+impl Default for StretchParams {
+    fn default() -> Self {
+        Self {
+            max: 0.1,
+            step: 0.004,
+            ground_ns: 9.0,
+        }
+    }
 }
 
 impl Default for TrackParams {
@@ -131,6 +164,7 @@ impl Default for TrackParams {
             gate_m_per_s: 0.5,
             sigma_locked_m: 0.05,
             sigma_m_per_s: 0.1,
+            stretch: StretchParams::default(),
             seed: 1,
         }
     }
@@ -176,6 +210,16 @@ impl TrackParams {
         }
         if self.sigma_locked_m <= 0.0 {
             return Err(param("sigma_locked_m", "must be positive"));
+        }
+        let st = &self.stretch;
+        if !(0.0..0.5).contains(&st.max) {
+            return Err(param("stretch.max", format!("must be in [0, 0.5), got {}", st.max)));
+        }
+        if !(st.step.is_finite() && st.step > 0.0) {
+            return Err(param("stretch.step", format!("must be positive, got {}", st.step)));
+        }
+        if !(st.ground_ns.is_finite() && st.ground_ns >= 0.0) {
+            return Err(param("stretch.ground_ns", format!("must be >= 0 and finite, got {}", st.ground_ns)));
         }
         Ok(())
     }
@@ -226,6 +270,8 @@ pub struct TrackOutput {
     pub search_xy_m: f64,
     /// Correlations evaluated.
     pub evaluations: usize,
+    /// The travel-time stretch the sweep was loaded with.
+    pub stretch: f64,
 }
 
 /// The lock decision of seed 001 §2.2.2, each criterion on its own.
@@ -255,6 +301,9 @@ pub fn lock_check(
 pub struct Tracker {
     params: TrackParams,
     swarm: Swarm,
+    sweep: PreparedSweep,
+    trial: PreparedSweep,
+    stretch: f64,
     /// The last reported pose, its stamp and the INS heading then.
     last: Option<(Pose5, i64, f64)>,
     last_lock_ns: Option<i64>,
@@ -263,10 +312,15 @@ pub struct Tracker {
 }
 
 impl Tracker {
-    /// A tracker; the parameters must have passed [`TrackParams::check`].
-    pub fn new(params: TrackParams) -> Self {
+    /// A tracker for sweeps of `channels` channels at `geometry`; the parameters must have
+    /// passed [`TrackParams::check`].
+    pub fn new(params: TrackParams, geometry: &ArrayGeometry, channels: usize) -> Self {
         let swarm = Swarm::new(params.swarm.clone(), params.seed);
+        let sweep = PreparedSweep::new(geometry, channels, params.window_start, params.window_len);
         Self {
+            trial: sweep.clone(),
+            sweep,
+            stretch: 1.0,
             params,
             swarm,
             last: None,
@@ -318,15 +372,33 @@ impl Tracker {
         (min as f64 + (max - min) as f64 * self.level).round() as usize
     }
 
-    /// Registers one sweep on `grid` (samples `sample_interval_ns` apart).
+    /// Channels of the sweeps this tracker takes.
+    pub fn channels(&self) -> usize {
+        self.sweep.channels()
+    }
+
+    /// The current travel-time stretch estimate.
+    pub fn stretch(&self) -> f64 {
+        self.stretch
+    }
+
+    /// Registers one sweep (`channels x samples` values, channel-major, samples
+    /// `sample_interval_ns` apart) on `grid`; `None` when its size does not fit.
     pub fn track(
         &mut self,
         grid: &LocalGrid,
         sample_interval_ns: f64,
-        sweep: &PreparedSweep,
+        values: &[f32],
+        samples: usize,
         stamp_ns: i64,
         ins: &InsState,
-    ) -> TrackOutput {
+    ) -> Option<TrackOutput> {
+        let origin = self.params.stretch.ground_ns / sample_interval_ns;
+        if !self.sweep.load_stretched(values, samples, self.stretch, origin) {
+            return None;
+        }
+        let stretch_used = self.stretch;
+        let sweep = &self.sweep;
         let expected = self.expect(stamp_ns, ins);
         let half_width = self.half_width();
         let particles = self.scaled(self.params.particles_min, self.params.particles_max);
@@ -336,6 +408,23 @@ impl Tracker {
             correlator.correlate(sweep, p).value
         });
         let c = correlator.correlate(sweep, &found.best);
+        // the stretch: one step either way when it correlates better at this pose
+        let st = &self.params.stretch;
+        if st.max > 0.0 && c.overlap >= self.params.min_overlap {
+            let mut best = c.value;
+            let mut best_stretch = self.stretch;
+            for cand in [self.stretch - st.step, self.stretch + st.step] {
+                if (cand - 1.0).abs() > st.max || !self.trial.load_stretched(values, samples, cand, origin) {
+                    continue;
+                }
+                let v = correlator.correlate(&self.trial, &found.best).value;
+                if v > best {
+                    best = v;
+                    best_stretch = cand;
+                }
+            }
+            self.stretch = best_stretch;
+        }
         let distance = (found.best[0] - expected[0]).hypot(found.best[1] - expected[1]);
         let since_lock = self.last_lock_ns.map(|t| ((stamp_ns - t) as f64 * 1e-9).max(0.0));
         let miss = lock_check(&self.params, c, distance, since_lock);
@@ -358,7 +447,7 @@ impl Tracker {
             (expected, base.hypot(grow))
         };
         self.last = Some((pose, stamp_ns, ins.yaw_rad));
-        TrackOutput {
+        Some(TrackOutput {
             pose,
             registered: found.best,
             expected,
@@ -369,7 +458,8 @@ impl Tracker {
             sigma_m: sigma,
             search_xy_m: half_width[0],
             evaluations: found.evaluations,
-        }
+            stretch: stretch_used,
+        })
     }
 }
 
@@ -449,23 +539,22 @@ mod tests {
     fn pso_finds_a_planted_5_dof_offset() {
         let w = world();
         let truth = [0.43, -0.61, 0.012, 0.02, 0.015];
-        let mut sweep = PreparedSweep::new(&w.geometry, 11, 4, 32);
-        assert!(sweep.load(&sweep_at(&w, &truth), SAMPLES));
-        let mut t = Tracker::new(params());
+        let sweep = sweep_at(&w, &truth);
+        let mut t = Tracker::new(params(), &w.geometry, 11);
         // the INS is 0.9 m and 1.5 degrees off
         let ins = InsState {
             xy_m: [truth[0] - 0.6, truth[1] + 0.7],
             yaw_rad: truth[3] - 0.026,
             velocity_mps: [0.0, 0.0],
         };
-        let out = t.track(&w.grid, DT_NS, &sweep, 0, &ins);
+        let out = t.track(&w.grid, DT_NS, &sweep, SAMPLES, 0, &ins).expect("fits");
         let err = (out.registered[0] - truth[0]).hypot(out.registered[1] - truth[1]);
         assert!(out.locked, "{out:?}");
         assert!(err < 0.04, "position error {err} m: {out:?}");
         assert!((out.registered[2] - truth[2]).abs() < 0.006, "{out:?}");
         assert!(out.correlation > 0.95);
         // locked: the box shrinks
-        let next = t.track(&w.grid, DT_NS, &sweep, 10_000_000, &ins);
+        let next = t.track(&w.grid, DT_NS, &sweep, SAMPLES, 10_000_000, &ins).expect("fits");
         assert!(next.search_xy_m < out.search_xy_m);
     }
 
@@ -487,25 +576,25 @@ mod tests {
     #[test]
     fn off_the_map_it_dead_reckons_and_widens() {
         let w = world();
-        let mut t = Tracker::new(params());
+        let mut t = Tracker::new(params(), &w.geometry, 11);
         let truth = [0.0, 0.0, 0.0, 0.0, 0.0];
-        let mut sweep = PreparedSweep::new(&w.geometry, 11, 4, 32);
-        assert!(sweep.load(&sweep_at(&w, &truth), SAMPLES));
+        let sweep = sweep_at(&w, &truth);
         let ins = InsState {
             xy_m: [0.0, 0.0],
             yaw_rad: 0.0,
             velocity_mps: [2.0, 0.0],
         };
-        let first = t.track(&w.grid, DT_NS, &sweep, 0, &ins);
+        let first = t.track(&w.grid, DT_NS, &sweep, SAMPLES, 0, &ins).expect("fits");
         assert!(first.locked);
         // a sweep of noise: no lock, the pose moves on at the INS velocity, the box grows
         let noise: Vec<f32> = (0..11 * SAMPLES).map(|i| ((i * 7919) % 101) as f32 - 50.0).collect();
-        assert!(sweep.load(&noise, SAMPLES));
-        let out = t.track(&w.grid, DT_NS, &sweep, 500_000_000, &ins);
+        let out = t.track(&w.grid, DT_NS, &noise, SAMPLES, 500_000_000, &ins).expect("fits");
         assert!(!out.locked && out.miss.is_some(), "{out:?}");
         assert!((out.pose[0] - (first.pose[0] + 1.0)).abs() < 1e-9);
         assert!(out.sigma_m > first.sigma_m);
-        let again = t.track(&w.grid, DT_NS, &sweep, 600_000_000, &ins);
+        let again = t.track(&w.grid, DT_NS, &noise, SAMPLES, 600_000_000, &ins).expect("fits");
+        // a sweep of the wrong size is refused
+        assert!(t.track(&w.grid, DT_NS, &noise[1..], SAMPLES, 700_000_000, &ins).is_none());
         assert!(!again.locked && again.search_xy_m > out.search_xy_m, "{again:?}");
     }
 

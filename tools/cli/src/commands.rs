@@ -165,6 +165,9 @@ pub fn stage(kind: &str, spec_file: &Path) -> Result<ExitCode> {
 /// # Errors
 /// Unreadable recording.
 pub fn inspect(file: &Path, json: bool, dump_json: bool) -> Result<ExitCode> {
+    if file.is_dir() && file.join("manifest.json").exists() {
+        return inspect_map(file, json);
+    }
     let rec = Recording::open(file)?;
     let mut out = std::io::stdout().lock();
     if dump_json {
@@ -321,4 +324,66 @@ pub fn check(graph: &Path, set: &[String]) -> Result<ExitCode> {
         g.topics().len()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// `gprflow inspect MAP_DIR`: an LGPR map store's manifest, tiles, size per km, and every
+/// tile read back (damage reported with the tile, the block and the columns kept).
+fn inspect_map(dir: &Path, json: bool) -> Result<ExitCode> {
+    use gprflow_lgpr::map::MapReader;
+    let map = MapReader::open(dir)?;
+    let info = map.info().clone();
+    let tiles = map.tiles()?;
+    let bytes: u64 = tiles.values().sum();
+    let (mut columns, mut damaged) = (0usize, Vec::new());
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for key in tiles.keys() {
+        let t = map.read_tile(*key, None)?;
+        columns += t.columns.len();
+        for p in &t.columns.positions {
+            (x0, y0, x1, y1) = (x0.min(p[0]), y0.min(p[1]), x1.max(p[0]), y1.max(p[1]));
+        }
+        if let Some(d) = t.damage {
+            damaged.push(d.to_string());
+        }
+    }
+    let km = info.length_m / 1000.0;
+    let mb_per_km = if km > 0.0 { bytes as f64 / 1e6 / km } else { 0.0 };
+    // what the columns would take as raw 8-bit samples with their headers
+    let raw = columns as f64 * (gprflow_lgpr::map::store::COLUMN_HEADER + info.samples as usize) as f64;
+    let mut out = std::io::stdout().lock();
+    if json {
+        let v = serde_json::json!({
+            "format": info.format, "version": info.version, "tile_m": info.tile_m, "samples": info.samples,
+            "sample_interval_ns": info.sample_interval_ns, "passes": info.passes, "length_m": info.length_m,
+            "tiles": tiles.len(), "columns": columns, "bytes": bytes, "mb_per_km": mb_per_km,
+            "compression": if bytes > 0 { raw / bytes as f64 } else { 0.0 },
+            "bounds_m": [x0, y0, x1, y1], "damaged": damaged,
+        });
+        writeln!(out, "{}", serde_json::to_string_pretty(&v)?)?;
+    } else {
+        writeln!(out, "{}: {} version {}", dir.display(), info.format, info.version)?;
+        writeln!(
+            out,
+            "  {} passes, {:.1} m mapped, {} tiles of {} m, {columns} columns of {} samples ({:.4} ns apart)",
+            info.passes,
+            info.length_m,
+            tiles.len(),
+            info.tile_m,
+            info.samples,
+            info.sample_interval_ns
+        )?;
+        writeln!(
+            out,
+            "  {:.1} MB on disk, {mb_per_km:.1} MB/km (zstd {:.2}:1 over 8-bit samples)",
+            bytes as f64 / 1e6,
+            if bytes > 0 { raw / bytes as f64 } else { 0.0 }
+        )?;
+        if columns > 0 {
+            writeln!(out, "  bounds x [{x0:.1}, {x1:.1}] m, y [{y0:.1}, {y1:.1}] m")?;
+        }
+        for d in &damaged {
+            writeln!(out, "  damaged: {d}")?;
+        }
+    }
+    Ok(if damaged.is_empty() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }

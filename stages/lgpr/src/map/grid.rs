@@ -84,6 +84,9 @@ pub struct LocalGrid {
     index: Vec<u32>,
     /// Samples of slot `s` at `values[s * samples..]`.
     values: Vec<f32>,
+    /// With [`LocalGrid::prepare_window`]: the window length and, per slot, the energy
+    /// (sum of squares) of the window at every start, `energies[s * starts + b0]`.
+    window: Option<(usize, Vec<f32>)>,
 }
 
 impl LocalGrid {
@@ -100,6 +103,7 @@ impl LocalGrid {
             samples,
             index: vec![EMPTY; n * n],
             values: Vec::new(),
+            window: None,
         };
         let mut weights: Vec<f32> = Vec::new();
         let r = spec.radius_m;
@@ -161,6 +165,20 @@ impl LocalGrid {
         spec: &GridSpec,
         centre: [f64; 2],
     ) -> Result<(Self, Vec<StoreError>), StoreError> {
+        Self::from_map_with_window(map, spec, centre, 0)
+    }
+
+    /// As [`LocalGrid::from_map`], with the window energies of `window_len` tabulated
+    /// ([`LocalGrid::prepare_window`]; 0: none).
+    ///
+    /// # Errors
+    /// `Io` reading a tile.
+    pub fn from_map_with_window(
+        map: &MapReader,
+        spec: &GridSpec,
+        centre: [f64; 2],
+        window_len: usize,
+    ) -> Result<(Self, Vec<StoreError>), StoreError> {
         let reach = spec.size_m / 2.0 + spec.spacing_m + spec.radius_m;
         let window = [centre[0] - reach, centre[1] - reach, centre[0] + reach, centre[1] + reach];
         let mut sources = Vec::new();
@@ -173,7 +191,43 @@ impl LocalGrid {
             sources.push(t.columns);
         }
         let refs: Vec<&Columns> = sources.iter().collect();
-        Ok((Self::build(spec, centre, map.info().samples as usize, &refs), damage))
+        let mut grid = Self::build(spec, centre, map.info().samples as usize, &refs);
+        grid.prepare_window(window_len);
+        Ok((grid, damage))
+    }
+
+    /// Tabulates the energy of every window of `len` samples of every slot, so that a
+    /// correlation needs only the products (`len` beyond the samples: nothing to tabulate).
+    pub fn prepare_window(&mut self, len: usize) {
+        if len == 0 || len > self.samples {
+            self.window = None;
+            return;
+        }
+        let starts = self.samples - len + 1;
+        let slots = self.occupied();
+        let mut energies = Vec::with_capacity(slots * starts);
+        for s in 0..slots {
+            let col = &self.values[s * self.samples..(s + 1) * self.samples];
+            // a running sum in f64 over the window as it slides
+            let mut e: f64 = col[..len].iter().map(|v| f64::from(*v) * f64::from(*v)).sum();
+            energies.push(e as f32);
+            for b0 in 1..starts {
+                let (out, inn) = (f64::from(col[b0 - 1]), f64::from(col[b0 + len - 1]));
+                e += inn * inn - out * out;
+                energies.push(e.max(0.0) as f32);
+            }
+        }
+        self.window = Some((len, energies));
+    }
+
+    /// The energy of slot `slot`'s window of `len` samples from `start`, when tabulated.
+    #[inline]
+    pub fn window_energy(&self, slot: usize, start: usize, len: usize) -> Option<f32> {
+        let (l, e) = self.window.as_ref()?;
+        if *l != len {
+            return None;
+        }
+        e.get(slot * (self.samples - len + 1) + start).copied()
     }
 
     /// The world position the grid was built around.
@@ -193,7 +247,7 @@ impl LocalGrid {
 
     /// Bytes held by the grid.
     pub fn bytes(&self) -> usize {
-        self.index.len() * 4 + self.values.len() * 4
+        self.index.len() * 4 + self.values.len() * 4 + self.window.as_ref().map_or(0, |w| w.1.len() * 4)
     }
 
     /// The slot of the grid point nearest `(x, y)`, if it has data.

@@ -67,8 +67,9 @@ pub struct GridPager {
 }
 
 impl GridPager {
-    /// A pager on `map` with grids of `spec`; starts its worker thread.
-    pub fn new(map: MapReader, spec: GridSpec) -> Self {
+    /// A pager on `map` with grids of `spec`, each with the window energies of `window_len`
+    /// tabulated ([`LocalGrid::prepare_window`]); starts its worker thread.
+    pub fn new(map: MapReader, spec: GridSpec, window_len: usize) -> Self {
         // one request at a time is outstanding (`pending`): two slots never block
         let (req_tx, req_rx) = sync_channel::<[f64; 2]>(2);
         let (res_tx, res_rx) = sync_channel(2);
@@ -78,7 +79,7 @@ impl GridPager {
             .spawn(move || {
                 for centre in req_rx {
                     let start = Instant::now();
-                    let out = LocalGrid::from_map(&map, &worker_spec, centre).map(|(grid, damage)| Gridded {
+                    let out = LocalGrid::from_map_with_window(&map, &worker_spec, centre, window_len).map(|(grid, damage)| Gridded {
                         grid: Arc::new(grid),
                         took: start.elapsed(),
                         damage,
@@ -221,7 +222,7 @@ mod tests {
             size_m: 20.0,
             ..GridSpec::default()
         };
-        let mut pager = GridPager::new(MapReader::open(dir.path()).expect("must succeed"), spec);
+        let mut pager = GridPager::new(MapReader::open(dir.path()).expect("must succeed"), spec, 4);
         let mut switches = 0;
         for step in 0..3900 {
             let x = step as f64 * 0.1;

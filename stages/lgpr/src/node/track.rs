@@ -14,7 +14,7 @@ use serde::Deserialize;
 use super::map::{to_param, yaw_of};
 use crate::array::ArrayGeometry;
 use crate::map::{GridPager, GridSpec, MapReader};
-use crate::track::{InsState, Miss, PreparedSweep, TrackParams, Tracker};
+use crate::track::{InsState, Miss, TrackParams, Tracker};
 
 /// Parameters of `lgpr_track`.
 #[derive(Debug, Clone, Deserialize, schemars::JsonSchema)]
@@ -57,8 +57,8 @@ pub struct LgprTrackStage {
     params: LgprTrackParams,
     map: MapReader,
     pager: Option<GridPager>,
-    tracker: Tracker,
-    sweep: Option<PreparedSweep>,
+    /// Made at the first sweep (its channel count).
+    tracker: Option<Tracker>,
     ins: Option<(i64, InsState)>,
     out: Output<MapFix>,
     counts: Counts,
@@ -101,18 +101,17 @@ impl LgprTrackStage {
             return Ok(());
         }
         let channels = s.channel_count as usize;
-        let t = &self.params.tracker;
-        let sweep = self
-            .sweep
-            .get_or_insert_with(|| PreparedSweep::new(&self.params.array, channels, t.window_start, t.window_len));
-        if sweep.channels() != channels || !sweep.load(&s.values, samples) {
+        let tracker = self
+            .tracker
+            .get_or_insert_with(|| Tracker::new(self.params.tracker.clone(), &self.params.array, channels));
+        if tracker.channels() != channels || s.values.len() != channels * samples {
             self.drops.record(
                 Self::NAME,
                 input,
                 &format_args!(
                     "{channels} channels, {} values: the first sweep had {} channels of {samples} samples",
                     s.values.len(),
-                    sweep.channels()
+                    tracker.channels()
                 ),
             );
             return Ok(());
@@ -134,7 +133,10 @@ impl LgprTrackStage {
             self.counts.no_ins += 1;
             return Ok(());
         }
-        let expected = self.tracker.expect(stamp, &ins);
+        let Some(tracker) = self.tracker.as_mut() else {
+            return Ok(());
+        };
+        let expected = tracker.expect(stamp, &ins);
         let speed = ins.velocity_mps[0].hypot(ins.velocity_mps[1]);
         let direction = if speed > 0.1 {
             [ins.velocity_mps[0] / speed, ins.velocity_mps[1] / speed]
@@ -143,7 +145,7 @@ impl LgprTrackStage {
         };
         let pager = self
             .pager
-            .get_or_insert_with(|| GridPager::new(self.map.clone(), self.params.grid.clone()));
+            .get_or_insert_with(|| GridPager::new(self.map.clone(), self.params.grid.clone(), self.params.tracker.window_len));
         let events = pager
             .update([expected[0], expected[1]], direction)
             .map_err(StageError::failed)?;
@@ -157,10 +159,9 @@ impl LgprTrackStage {
         let Some(grid) = pager.current().cloned() else {
             return Ok(());
         };
-        let Some(sweep) = self.sweep.as_ref() else {
+        let Some(r) = tracker.track(&grid, s.sample_interval_ns, &s.values, samples, stamp, &ins) else {
             return Ok(());
         };
-        let r = self.tracker.track(&grid, s.sample_interval_ns, sweep, stamp, &ins);
         self.counts.sweeps += 1;
         self.counts.evaluations += r.evaluations as u64;
         match r.miss {
@@ -245,11 +246,10 @@ impl Stage for LgprTrackStage {
             "lgpr_track: map opened"
         );
         Ok(Self {
-            tracker: Tracker::new(params.tracker.clone()),
+            tracker: None,
             params,
             map,
             pager: None,
-            sweep: None,
             ins: None,
             out: ports.output("map_fix")?,
             counts: Counts::default(),
@@ -314,6 +314,7 @@ impl Stage for LgprTrackStage {
             grid_p50_ms = format!("{grid_p50_ms:.0}"),
             grid_max_ms = format!("{grid_max_ms:.0}"),
             stalls,
+            stretch = format!("{:.3}", self.tracker.as_ref().map_or(1.0, Tracker::stretch)),
             "lgpr_track: done"
         );
         Ok(())

@@ -79,6 +79,35 @@ impl PreparedSweep {
         }
         true
     }
+
+    /// Loads a sweep as [`PreparedSweep::load`], its travel times below `origin` (a sample
+    /// position: the ground surface) scaled by `1 / stretch`: window sample `d` takes the
+    /// sweep's value at `origin + stretch (d - origin)`, linearly interpolated. A sweep
+    /// through wetter (slower) soil than the map's has its echoes late by a factor
+    /// `stretch > 1`; so loaded, it lines up with the map again.
+    pub fn load_stretched(&mut self, values: &[f32], samples: usize, stretch: f64, origin: f64) -> bool {
+        if stretch == 1.0 {
+            return self.load(values, samples);
+        }
+        if values.len() != self.channels * samples || self.start + self.len > samples {
+            return false;
+        }
+        let last = (samples - 1) as f64;
+        for k in 0..self.channels {
+            let src = &values[k * samples..(k + 1) * samples];
+            let dst = &mut self.a[k * self.len..(k + 1) * self.len];
+            for (j, out) in dst.iter_mut().enumerate() {
+                let d = (self.start + j) as f64;
+                let at = if d <= origin { d } else { (origin + stretch * (d - origin)).min(last) };
+                let i = at.floor() as usize;
+                let f = (at - i as f64) as f32;
+                let next = src[(i + 1).min(samples - 1)];
+                *out = src[i] + f * (next - src[i]);
+            }
+            self.aa[k] = dot(dst, dst);
+        }
+        true
+    }
 }
 
 /// `sum a b` with eight independent partial sums (vectorises).
@@ -157,7 +186,10 @@ impl<'g> Correlator<'g> {
             let b0 = (sweep.start as i64 - shift).clamp(0, max_start) as usize;
             let b = &self.grid.column(slot)[b0..b0 + sweep.len];
             let a = &sweep.a[k * sweep.len..(k + 1) * sweep.len];
-            let (s_ab, s_bb) = dot_and_energy(a, b);
+            let (s_ab, s_bb) = match self.grid.window_energy(slot, b0, sweep.len) {
+                Some(e) => (dot(a, b), e),
+                None => dot_and_energy(a, b),
+            };
             ab += f64::from(s_ab);
             bb += f64::from(s_bb);
             aa += f64::from(sweep.aa[k]);
@@ -234,6 +266,14 @@ mod tests {
             assert_eq!(got.overlap, n);
             assert!((got.value - want).abs() < 1e-5, "{pose:?}: {} vs {want}", got.value);
         }
+        // with the window energies tabulated, the same values
+        let mut tabulated = g.clone();
+        tabulated.prepare_window(32);
+        let t = Correlator::new(&tabulated, dt);
+        for pose in [[0.1, -0.2, 0.0, 0.3, 0.0], [0.0, 0.0, 0.04, -0.5, 0.02]] {
+            let (a, b) = (c.correlate(&sweep, &pose), t.correlate(&sweep, &pose));
+            assert!((a.value - b.value).abs() < 1e-6 && a.overlap == b.overlap, "{a:?} vs {b:?}");
+        }
         // off the grid: nothing overlaps, correlation 0
         let off = c.correlate(&sweep, &[10.0, 10.0, 0.0, 0.0, 0.0]);
         assert_eq!((off.value, off.overlap), (0.0, 0));
@@ -259,5 +299,17 @@ mod tests {
         assert!((c.correlate(&sweep, &pose).value + 1.0).abs() < 1e-6);
         // wrong sizes are refused
         assert!(!sweep.load(&values[1..], samples));
+        assert!(!sweep.load_stretched(&values[1..], samples, 1.05, 10.0));
+        // a stretch of 1 is the plain load; stretching by 2 about sample 10 reads sample
+        // 10 + 2 (d - 10) for window sample d
+        let ramp: Vec<f32> = (0..3).flat_map(|_| (0..samples).map(|d| d as f32)).collect();
+        assert!(sweep.load_stretched(&ramp, samples, 2.0, 10.0));
+        let mut plain = PreparedSweep::new(&geo, 3, 4, 32);
+        assert!(plain.load(&ramp, samples));
+        assert_eq!(&sweep.a[..6], &[4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
+        assert_eq!(sweep.a[7], 12.0);
+        assert_eq!(sweep.a[20], 38.0); // d = 24: 10 + 2 x 14
+        assert_eq!(sweep.a[31], 39.0); // d = 35: 60, past the end, the last sample
+        assert_eq!(plain.a[20], 24.0);
     }
 }

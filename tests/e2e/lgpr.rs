@@ -1,0 +1,181 @@
+//! LGPR prior-map localisation end to end (seed 001 §2.2): a simulated highway mapping pass
+//! through graphs/lgpr-map.yaml into a map store, a faster tracking pass at a lateral offset
+//! through graphs/lgpr-track.yaml against it, measured by `gprflow lgpr-eval` (eq. 11); and
+//! unusable sweeps dropped, counted and named while tracking goes on.
+
+use std::path::Path;
+
+use crate::common::{gprflow, stderr};
+
+fn path(p: &Path) -> &str {
+    p.to_str().expect("utf8")
+}
+
+/// Simulates `run` of the highway for `seconds` into `dir/NAME.mcap`.
+fn sim(dir: &Path, run: &str, seconds: &str) -> std::path::PathBuf {
+    let out = dir.join(format!("{run}.mcap"));
+    let o = gprflow(&[
+        "sim",
+        "tools/sim/scenarios/highway.yaml",
+        "-o",
+        path(&out),
+        "--run",
+        run,
+        "--duration",
+        seconds,
+    ]);
+    assert!(o.status.success(), "sim {run}: {}", stderr(&o));
+    out
+}
+
+/// Builds the map of the first 50 s of the mapping pass (about 200 m) into `dir/map`.
+fn build_map(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let map_rec = sim(dir, "map", "50");
+    let map = dir.join("map");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-map.yaml",
+        "--set",
+        &format!("recording={}", path(&map_rec)),
+        "--set",
+        &format!("map={}", path(&map)),
+    ]);
+    let log = stderr(&o);
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("lgpr_map: map written"), "{log}");
+    // the store reads back, with a whole number of tiles
+    let inspect = gprflow(&["inspect", path(&map)]);
+    let text = String::from_utf8_lossy(&inspect.stdout).into_owned();
+    assert!(inspect.status.success(), "{}", stderr(&inspect));
+    assert!(text.contains("gprflow-lgpr-map version 1") && text.contains("MB/km"), "{text}");
+    (map_rec, map)
+}
+
+#[test]
+fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (map_rec, map) = build_map(dir.path());
+    // 48 km/h, 0.3 m to the left of the mapping line, for 12 s: about 140 m, inside the map
+    let track_rec = sim(dir.path(), "track_48", "12");
+    let fixes = dir.path().join("fixes.mcap");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-track.yaml",
+        "--set",
+        &format!("recording={}", path(&track_rec)),
+        "--set",
+        &format!("map={}", path(&map)),
+        "--record",
+        path(&fixes),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = gprflow(&["lgpr-eval", path(&fixes), "--baseline", path(&map_rec), "--format", "json"]);
+    assert!(e.status.success(), "{}", stderr(&e));
+    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
+    let r = &rows[0];
+    let cm = |v: &serde_json::Value| v.as_f64().expect("number") * 100.0;
+    let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
+    let (gps_cross, lock) = (cm(&r["gps"]["cross_m"]), r["locked_pct"].as_f64().expect("number"));
+    // seed 001's targets: <= 4 cm cross-track, <= 6 cm along-track RMS, lock nearly always
+    assert!(cross <= 4.0 && along <= 6.0, "LGPR RMS cross {cross:.1} cm, along {along:.1} cm: {r}");
+    assert!(lock >= 99.0, "locked {lock:.2} % of the distance: {r}");
+    assert!(r["distance_m"].as_f64().expect("number") > 100.0, "{r}");
+    // the GPS/INS alone is an order of magnitude worse
+    assert!(gps_cross > 3.0 * cross, "GPS/INS cross {gps_cross:.1} cm: {r}");
+}
+
+#[test]
+fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
+    use gprflow::msg::{Sweep, decode, encode};
+    use gprflow::record::{Recorder, Recording, RunMetadata};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_, map) = build_map(dir.path());
+    // processed sweeps of a short tracking pass, with the GPS/INS
+    let track_rec = sim(dir.path(), "track_48", "5");
+    let processed = dir.path().join("processed.mcap");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-sweeps.yaml",
+        "--set",
+        &format!("recording={}", path(&track_rec)),
+        "--record",
+        path(&processed),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // a recording of those sweeps with two spoilt: one with ten channels, one with a NaN
+    let bad = dir.path().join("bad.mcap");
+    let (mut sweeps, mut spoilt) = (0u64, 0u64);
+    {
+        let mut w = Recorder::create(&bad, &RunMetadata::this_build()).expect("create");
+        let sweep_ch = w.add_topic("/lgpr/sweep", Sweep::ROS_NAME).expect("topic");
+        let src = Recording::open(&processed).expect("open");
+        let (_, stopped) = src.scan(|m| {
+            if m.topic != "/lgpr/sweep" {
+                return;
+            }
+            let mut s: Sweep = decode(m.data).expect("decodes");
+            sweeps += 1;
+            if sweeps == 300 {
+                s.channel_count = 10;
+                s.values.to_mut().truncate(10 * 369);
+                spoilt += 1;
+            } else if sweeps == 400 {
+                s.values.to_mut()[5 * 369 + 17] = f32::NAN;
+                spoilt += 1;
+            }
+            w.write(sweep_ch, m.sequence, m.log_time as i64, &encode(&s)).expect("write");
+        });
+        assert_eq!(stopped, None);
+        let gps_ch = w.add_topic("/gps/odometry", gprflow::msg::Odometry::ROS_NAME).expect("topic");
+        let sim = Recording::open(&track_rec).expect("open");
+        sim.scan(|m| {
+            if m.topic == "/gps/odometry" {
+                w.write(gps_ch, m.sequence, m.log_time as i64, m.data).expect("write");
+            }
+        });
+        w.finish().expect("finish");
+    }
+    let fixes = dir.path().join("fixes.mcap");
+    let o = gprflow(&[
+        "launch",
+        "tests/graphs/lgpr-track-processed.yaml",
+        "--set",
+        &format!("recording={}", path(&bad)),
+        "--set",
+        &format!("map={}", path(&map)),
+        "--record",
+        path(&fixes),
+    ]);
+    let log = stderr(&o);
+    assert!(o.status.success(), "{log}");
+    assert!(log.contains("10 channels") && log.contains("the first sweep had 11 channels"), "{log}");
+    assert!(log.contains("channel 5 sample 17 is NaN"), "{log}");
+    assert!(!log.contains("panicked"), "{log}");
+    let out = crate::payloads(&fixes);
+    assert_eq!(out["/track/map_fix"].len() as u64, sweeps - spoilt, "{log}");
+}
+
+#[test]
+fn a_map_store_of_another_version_is_refused_by_name() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let map = dir.path().join("map");
+    std::fs::create_dir_all(map.join("tiles")).expect("mkdir");
+    std::fs::write(
+        map.join("manifest.json"),
+        r#"{"format": "gprflow-lgpr-map", "version": 2, "tile_m": 50.0, "samples": 369, "sample_interval_ns": 0.16}"#,
+    )
+    .expect("write");
+    let o = gprflow(&["inspect", path(&map)]);
+    let log = stderr(&o);
+    assert!(!o.status.success());
+    assert!(log.contains("manifest.json") && log.contains("version 2"), "{log}");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-track.yaml",
+        "--set",
+        &format!("map={}", path(&map)),
+    ]);
+    let log = stderr(&o);
+    assert!(!o.status.success());
+    assert!(log.contains("manifest.json") && log.contains("version 2"), "{log}");
+}
