@@ -138,7 +138,7 @@ fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
     let fixes = dir.path().join("fixes.mcap");
     let o = gprflow(&[
         "launch",
-        "tests/graphs/lgpr-track-processed.yaml",
+        "tests/graphs/valid-lgpr-track-processed.yaml",
         "--set",
         &format!("recording={}", path(&bad)),
         "--set",

@@ -100,6 +100,10 @@ pub struct TrackParams {
     pub sigma_locked_m: f64,
     /// Growth of the dead-reckoned position's standard deviation, m/s. Default 0.1.
     pub sigma_m_per_s: f64,
+    /// Standard deviation of the GPS/INS position, m: once the dead-reckoned position is less
+    /// certain than this (and before the first lock), the GPS/INS position is reported and
+    /// searched around instead (seed 001's fallback to the GPS/INS solution). Default 0.5.
+    pub ins_sigma_m: f64,
     /// The travel-time stretch of wetter or drier soil than the map's.
     pub stretch: StretchParams,
     /// Random seed of the swarm. Default 1.
@@ -164,6 +168,7 @@ impl Default for TrackParams {
             gate_m_per_s: 0.5,
             sigma_locked_m: 0.05,
             sigma_m_per_s: 0.1,
+            ins_sigma_m: 0.5,
             stretch: StretchParams::default(),
             seed: 1,
         }
@@ -203,6 +208,7 @@ impl TrackParams {
             ("gate_m_per_s", self.gate_m_per_s),
             ("sigma_locked_m", self.sigma_locked_m),
             ("sigma_m_per_s", self.sigma_m_per_s),
+            ("ins_sigma_m", self.ins_sigma_m),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(param(key, format!("must be >= 0 and finite, got {v}")));
@@ -439,12 +445,19 @@ impl Tracker {
             self.level = (self.level + step).min(1.0);
             let t = since_lock.unwrap_or(0.0);
             let grow = self.params.sigma_m_per_s * t;
-            let base = if self.last_lock_ns.is_some() {
-                self.params.sigma_locked_m
-            } else {
-                self.params.search_max.xy_m
+            let sigma = match self.last_lock_ns {
+                Some(_) => self.params.sigma_locked_m.hypot(grow),
+                None => f64::INFINITY,
             };
-            (expected, base.hypot(grow))
+            if sigma > self.params.ins_sigma_m {
+                // dead reckoning is now worse than the GPS/INS itself
+                let mut at = expected;
+                at[0] = ins.xy_m[0];
+                at[1] = ins.xy_m[1];
+                (at, self.params.ins_sigma_m)
+            } else {
+                (expected, sigma)
+            }
         };
         self.last = Some((pose, stamp_ns, ins.yaw_rad));
         Some(TrackOutput {
@@ -592,6 +605,9 @@ mod tests {
         assert!(!out.locked && out.miss.is_some(), "{out:?}");
         assert!((out.pose[0] - (first.pose[0] + 1.0)).abs() < 1e-9);
         assert!(out.sigma_m > first.sigma_m);
+        // once dead reckoning is less certain than the GPS/INS, the GPS/INS position
+        let late = t.track(&w.grid, DT_NS, &noise, SAMPLES, 9_000_000_000, &ins).expect("fits");
+        assert!(!late.locked && late.pose[0] == ins.xy_m[0] && late.sigma_m == 0.5, "{late:?}");
         let again = t.track(&w.grid, DT_NS, &noise, SAMPLES, 600_000_000, &ins).expect("fits");
         // a sweep of the wrong size is refused
         assert!(t.track(&w.grid, DT_NS, &noise[1..], SAMPLES, 700_000_000, &ins).is_none());

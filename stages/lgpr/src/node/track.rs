@@ -66,6 +66,14 @@ pub struct LgprTrackStage {
     damage_reported: usize,
 }
 
+/// This process's peak resident set, MB (Linux: `VmHWM` of `/proc/self/status`).
+fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
 /// Orientation of a pose with heading `yaw` and roll `roll` (roll about x, then yaw about z).
 fn orientation(yaw: f64, roll: f64) -> Quaternion {
     let (sy, cy) = (yaw / 2.0).sin_cos();
@@ -315,6 +323,7 @@ impl Stage for LgprTrackStage {
             grid_max_ms = format!("{grid_max_ms:.0}"),
             stalls,
             stretch = format!("{:.3}", self.tracker.as_ref().map_or(1.0, Tracker::stretch)),
+            peak_rss_mb = peak_rss_mb().map_or_else(|| "unknown".to_owned(), |v| format!("{v:.0}")),
             "lgpr_track: done"
         );
         Ok(())
