@@ -75,6 +75,20 @@ impl Fixes {
     }
 }
 
+impl Fixes {
+    /// The poses of a trajectory (a fused estimate) as fixes: every one counted as locked,
+    /// correlation NaN (unknown), overlap 0.
+    pub fn from_trajectory(t: &Trajectory) -> Self {
+        Self {
+            stamps_ns: t.stamps_ns.clone(),
+            xy_m: t.poses.iter().map(|p| [p.translation.x, p.translation.y]).collect(),
+            correlation: vec![f64::NAN; t.len()],
+            overlap: vec![0; t.len()],
+            locked: vec![true; t.len()],
+        }
+    }
+}
+
 /// The four tracks eq. 11 needs besides the fixes.
 #[derive(Debug, Clone, Copy)]
 pub struct Tracks<'a> {

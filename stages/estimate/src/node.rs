@@ -181,6 +181,11 @@ pub struct EstimateStage {
     last_stamp_ns: i64,
     /// The first `initial_pose` message was seen (later ones are ignored).
     origin_seen: bool,
+    /// No `initial_pose` input but a `map_fix` one: the first locked map fix anchors the
+    /// estimate (its position and orientation are the first state's).
+    anchor_on_map_fix: bool,
+    /// Map fixes not used because the tracker was not locked (dead-reckoned, not measured).
+    unlocked_map_fixes: u64,
     /// Messages dropped as unusable (non-finite values).
     drops: Drops,
     /// Registrations dropped by `registration_gate_m`.
@@ -345,7 +350,8 @@ impl Stage for EstimateStage {
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
         let mut est = OnlineEstimator::new(params.online());
-        if ports.input("initial_pose").is_some() {
+        let anchor_on_map_fix = ports.input("initial_pose").is_none() && ports.input("map_fix").is_some();
+        if ports.input("initial_pose").is_some() || anchor_on_map_fix {
             est.wait_for_origin();
         }
         Ok(Self {
@@ -361,6 +367,8 @@ impl Stage for EstimateStage {
             params,
             last_stamp_ns: 0,
             origin_seen: false,
+            anchor_on_map_fix,
+            unlocked_map_fixes: 0,
             drops: Drops::new(),
             gated_registrations: 0,
         })
@@ -444,6 +452,17 @@ impl Stage for EstimateStage {
             }
             "map_fix" => {
                 let m: MapFix = input.decode()?;
+                if !m.locked {
+                    self.unlocked_map_fixes += 1;
+                    return Ok(());
+                }
+                if self.anchor_on_map_fix && !self.origin_seen {
+                    let mut anchor = m.world_from_body;
+                    anchor.position.z = 0.0;
+                    self.origin_seen = self.est.set_origin(pose_from_msg(&anchor));
+                    tracing::info!(seq = input.seq(), "estimate: the first locked map fix anchors the estimate");
+                    return Ok(());
+                }
                 let c = &m.covariance.0;
                 let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
                 let p = &m.world_from_body.position;
@@ -460,6 +479,12 @@ impl Stage for EstimateStage {
     fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
         self.est.finish().map_err(StageError::failed)?;
         self.drops.report(Self::NAME);
+        if self.unlocked_map_fixes > 0 {
+            tracing::info!(
+                map_fixes = self.unlocked_map_fixes,
+                "estimate: map fixes without a lock, not used"
+            );
+        }
         if self.est.dropped_before_origin() > 0 {
             tracing::info!(
                 imu_samples = self.est.dropped_before_origin(),

@@ -464,7 +464,9 @@ impl OnlineEstimator {
         Ok(true)
     }
 
-    /// Adds a prior-map (or GPS) position fix on the ground plane for the state nearest `stamp_ns`.
+    /// Adds a prior-map (or GPS) position fix on the ground plane for the state nearest
+    /// `stamp_ns`, moved to that state's stamp with the state's current velocity estimate (a
+    /// fix 50 ms from its state at 97 km/h is 1.35 m away otherwise).
     ///
     /// # Errors
     /// A bad sigma.
@@ -478,9 +480,15 @@ impl OnlineEstimator {
             return Ok(false);
         };
         let noise = NoiseModel::diagonal(&sigma_xy_m)?;
+        let dt = (self.stamps_ns[s] - stamp_ns) as f64 * 1e-9;
+        // a state that has left the window has no current estimate to move the fix with
+        let Ok(v) = self.values.velocity(self.states[s].velocity) else {
+            return Ok(false);
+        };
+        let at = xy_m + Vector2::new(v.x, v.y) * dt;
         self.graph.add(PositionFix::new(
             self.states[s].pose,
-            Vector3::new(xy_m.x, xy_m.y, 0.0),
+            Vector3::new(at.x, at.y, 0.0),
             PositionAxes::Xy,
             noise,
         )?);

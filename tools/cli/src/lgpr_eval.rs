@@ -24,6 +24,8 @@ pub struct LgprEvalArgs {
     pub baseline: PathBuf,
     /// Largest true lateral offset from the baseline kept, m.
     pub max_offset_m: f64,
+    /// Evaluate this pose topic (a fused estimate) instead of the map fixes.
+    pub topic: Option<String>,
     /// Output format.
     pub format: ReportFormat,
     /// Write the figures (PNG) into this directory.
@@ -73,7 +75,10 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
     let mut all: Vec<(String, Vec<Sample>)> = Vec::new();
     for run in &args.runs {
         let rec = Recording::open(run).with_context(|| format!("{}: cannot open", run.display()))?;
-        let fixes = Fixes::from_recording(&rec, None)?;
+        let fixes = match &args.topic {
+            Some(t) => Fixes::from_trajectory(&Trajectory::from_recording(&rec, t)?),
+            None => Fixes::from_recording(&rec, None)?,
+        };
         let (track_truth, track_gps) = truth_and_gps(run)?;
         let tracks = Tracks {
             track_truth: &track_truth,
@@ -220,7 +225,17 @@ fn figures(dir: &Path, runs: &[(String, Vec<Sample>)]) -> Result<()> {
         "Cross-track error vs correlation (Fig. 18)",
         "correlation",
         "|cross-track error| (cm)",
-        &[(points("LGPR", &|s| (s.correlation, 100.0 * s.lgpr[1].abs())), Style::Points)],
+        &[(
+            Series {
+                label: "LGPR".into(),
+                points: pooled
+                    .iter()
+                    .filter(|s| s.correlation.is_finite())
+                    .map(|s| (s.correlation, 100.0 * s.lgpr[1].abs()))
+                    .collect(),
+            },
+            Style::Points,
+        )],
     )?;
     chart(
         &dir.join("fig19-error-vs-offset.png"),

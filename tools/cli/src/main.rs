@@ -191,6 +191,10 @@ enum Command {
         /// Largest true lateral offset from the mapping pass evaluated, m (seed 001: 1.3).
         #[arg(long, default_value_t = 1.3)]
         max_offset_m: f64,
+        /// Evaluate this pose topic (a fused estimate, e.g. /estimate/state) instead of the
+        /// map fixes.
+        #[arg(long)]
+        topic: Option<String>,
         /// Output format.
         #[arg(long, value_enum, default_value = "text")]
         format: gprflow_cli::eval::ReportFormat,
@@ -438,12 +442,14 @@ fn main() -> ExitCode {
             runs,
             baseline,
             max_offset_m,
+            topic,
             format,
             plot_dir,
         } => gprflow_cli::lgpr_eval::lgpr_eval_command(&gprflow_cli::lgpr_eval::LgprEvalArgs {
             runs,
             baseline,
             max_offset_m,
+            topic,
             format,
             plot_dir,
         }),
