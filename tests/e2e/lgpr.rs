@@ -47,7 +47,10 @@ fn build_map(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     let inspect = gprflow(&["inspect", path(&map)]);
     let text = String::from_utf8_lossy(&inspect.stdout).into_owned();
     assert!(inspect.status.success(), "{}", stderr(&inspect));
-    assert!(text.contains("gprflow-lgpr-map version 1") && text.contains("MB/km"), "{text}");
+    assert!(
+        text.contains("gprflow-lgpr-map version 1") && text.contains("MB/km"),
+        "{text}"
+    );
     (map_rec, map)
 }
 
@@ -69,7 +72,14 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
         path(&fixes),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let e = gprflow(&["lgpr-eval", path(&fixes), "--baseline", path(&map_rec), "--format", "json"]);
+    let e = gprflow(&[
+        "lgpr-eval",
+        path(&fixes),
+        "--baseline",
+        path(&map_rec),
+        "--format",
+        "json",
+    ]);
     assert!(e.status.success(), "{}", stderr(&e));
     let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
     let r = &rows[0];
@@ -77,7 +87,10 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
     let (gps_cross, lock) = (cm(&r["gps"]["cross_m"]), r["locked_pct"].as_f64().expect("number"));
     // seed 001's targets: <= 4 cm cross-track, <= 6 cm along-track RMS, lock nearly always
-    assert!(cross <= 4.0 && along <= 6.0, "LGPR RMS cross {cross:.1} cm, along {along:.1} cm: {r}");
+    assert!(
+        cross <= 4.0 && along <= 6.0,
+        "LGPR RMS cross {cross:.1} cm, along {along:.1} cm: {r}"
+    );
     assert!(lock >= 99.0, "locked {lock:.2} % of the distance: {r}");
     assert!(r["distance_m"].as_f64().expect("number") > 100.0, "{r}");
     // the GPS/INS alone is an order of magnitude worse
@@ -123,14 +136,18 @@ fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
                 s.values.to_mut()[5 * 369 + 17] = f32::NAN;
                 spoilt += 1;
             }
-            w.write(sweep_ch, m.sequence, m.log_time as i64, &encode(&s)).expect("write");
+            w.write(sweep_ch, u64::from(m.sequence), m.log_time as i64, &encode(&s))
+                .expect("write");
         });
         assert_eq!(stopped, None);
-        let gps_ch = w.add_topic("/gps/odometry", gprflow::msg::Odometry::ROS_NAME).expect("topic");
+        let gps_ch = w
+            .add_topic("/gps/odometry", gprflow::msg::Odometry::ROS_NAME)
+            .expect("topic");
         let sim = Recording::open(&track_rec).expect("open");
         sim.scan(|m| {
             if m.topic == "/gps/odometry" {
-                w.write(gps_ch, m.sequence, m.log_time as i64, m.data).expect("write");
+                w.write(gps_ch, u64::from(m.sequence), m.log_time as i64, m.data)
+                    .expect("write");
             }
         });
         w.finish().expect("finish");
@@ -148,7 +165,10 @@ fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
     ]);
     let log = stderr(&o);
     assert!(o.status.success(), "{log}");
-    assert!(log.contains("10 channels") && log.contains("the first sweep had 11 channels"), "{log}");
+    assert!(
+        log.contains("10 channels") && log.contains("the first sweep had 11 channels"),
+        "{log}"
+    );
     assert!(log.contains("channel 5 sample 17 is NaN"), "{log}");
     assert!(!log.contains("panicked"), "{log}");
     let out = crate::payloads(&fixes);

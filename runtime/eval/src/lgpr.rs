@@ -191,7 +191,11 @@ impl<'a> Baseline<'a> {
             .iter()
             .map(|p| Vector2::new(p.translation.x, p.translation.y))
             .collect();
-        Self { truth, xy, cursor: None }
+        Self {
+            truth,
+            xy,
+            cursor: None,
+        }
     }
 
     /// Nearest point of segment `i` (`i`, `i + 1`) to `p`: (distance, fraction).
@@ -199,7 +203,11 @@ impl<'a> Baseline<'a> {
         let (a, b) = (self.xy[i], self.xy[i + 1]);
         let d = b - a;
         let len2 = d.norm_squared();
-        let f = if len2 > 0.0 { ((p - a).dot(&d) / len2).clamp(0.0, 1.0) } else { 0.0 };
+        let f = if len2 > 0.0 {
+            ((p - a).dot(&d) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         ((a + d * f - p).norm(), f)
     }
 
@@ -322,7 +330,8 @@ pub fn summarise(samples: &[Sample]) -> Option<Summary> {
     if total <= 0.0 {
         return None;
     }
-    let rms = |f: &dyn Fn(&Sample) -> f64| (samples.iter().map(|s| s.weight_m * f(s).powi(2)).sum::<f64>() / total).sqrt();
+    let rms =
+        |f: &dyn Fn(&Sample) -> f64| (samples.iter().map(|s| s.weight_m * f(s).powi(2)).sum::<f64>() / total).sqrt();
     let of = |pick: fn(&Sample) -> [f64; 2]| Rms {
         along_m: rms(&|s| pick(s)[0]),
         cross_m: rms(&|s| pick(s)[1]),
@@ -372,7 +381,9 @@ mod tests {
         let mut fixes = Fixes::default();
         for (s, p) in track_truth.stamps_ns.iter().zip(&track_truth.poses).skip(10).take(500) {
             fixes.stamps_ns.push(*s);
-            fixes.xy_m.push([p.translation.x + 0.3 + 0.03, p.translation.y - 0.2 - 0.02]);
+            fixes
+                .xy_m
+                .push([p.translation.x + 0.3 + 0.03, p.translation.y - 0.2 - 0.02]);
             fixes.correlation.push(0.95);
             fixes.overlap.push(11);
             fixes.locked.push(true);
@@ -386,7 +397,10 @@ mod tests {
         let samples = evaluate(&fixes, tracks, Options::default());
         assert_eq!(samples.len(), 500);
         for s in &samples[1..] {
-            assert!((s.lgpr[0] - 0.03).abs() < 1e-9 && (s.lgpr[1] + 0.02).abs() < 1e-9, "{s:?}");
+            assert!(
+                (s.lgpr[0] - 0.03).abs() < 1e-9 && (s.lgpr[1] + 0.02).abs() < 1e-9,
+                "{s:?}"
+            );
             assert!((s.gps[0] + 0.7).abs() < 1e-9 && (s.gps[1] - 0.3).abs() < 1e-9, "{s:?}");
             assert!((s.offset_m - 0.5).abs() < 1e-9 && (s.speed_mps - 10.0).abs() < 1e-6);
         }

@@ -460,7 +460,10 @@ impl Stage for EstimateStage {
                     let mut anchor = m.world_from_body;
                     anchor.position.z = 0.0;
                     self.origin_seen = self.est.set_origin(pose_from_msg(&anchor));
-                    tracing::info!(seq = input.seq(), "estimate: the first locked map fix anchors the estimate");
+                    tracing::info!(
+                        seq = input.seq(),
+                        "estimate: the first locked map fix anchors the estimate"
+                    );
                     return Ok(());
                 }
                 let c = &m.covariance.0;

@@ -6,7 +6,8 @@ use std::borrow::Cow;
 use std::path::Path;
 
 use gprflow_msg::{
-    Header, Imu, Message, Odometry, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode, encode,
+    Header, Imu, Message, Odometry, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode,
+    encode,
 };
 use gprflow_record::Recording;
 

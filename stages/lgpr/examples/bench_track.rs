@@ -146,7 +146,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (params.particles_max, params.iterations_max),
     ] {
         // fewer sweeps for the big swarms: the cost per sweep is what is reported
-        let count = if particles * iterations > 2000 { (n / 10).max(50) } else { n };
+        let count = if particles * iterations > 2000 {
+            (n / 10).max(50)
+        } else {
+            n
+        };
         let mut swarm = Swarm::new(SwarmParams::default(), 7);
         let mut times = Vec::with_capacity(count);
         let (mut err2, mut within, mut corr_sum) = (0.0, 0, 0.0);
@@ -188,11 +192,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .flat_map(|&s| if s == u32::MAX { -1_i32 } else { s as i32 }.to_le_bytes())
         .collect();
     std::fs::write(dump.join("index.i32"), idx)?;
-    std::fs::write(dump.join("columns.f32"), values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>())?;
+    std::fs::write(
+        dump.join("columns.f32"),
+        values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>(),
+    )?;
     let flat: Vec<u8> = sweeps.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
     std::fs::write(dump.join("sweeps.f32"), flat)?;
-    write_f64(&dump.join("seeds.f64"), &seeds.iter().flatten().copied().collect::<Vec<_>>())?;
-    write_f64(&dump.join("truth.f64"), &truths.iter().flatten().copied().collect::<Vec<_>>())?;
+    write_f64(
+        &dump.join("seeds.f64"),
+        &seeds.iter().flatten().copied().collect::<Vec<_>>(),
+    )?;
+    write_f64(
+        &dump.join("truth.f64"),
+        &truths.iter().flatten().copied().collect::<Vec<_>>(),
+    )?;
     // poses for the correlation check: the truth and points around it
     let mut poses = Vec::new();
     let mut check = Vec::new();

@@ -39,7 +39,10 @@ impl ArrayGeometry {
             ));
         }
         if !self.mount_m.iter().all(|v| v.is_finite()) {
-            return Err(param(&format!("{prefix}.mount_m"), format!("must be finite, got {:?}", self.mount_m)));
+            return Err(param(
+                &format!("{prefix}.mount_m"),
+                format!("must be finite, got {:?}", self.mount_m),
+            ));
         }
         Ok(())
     }

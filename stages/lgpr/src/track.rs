@@ -56,7 +56,10 @@ impl SearchBox {
             ("roll_deg", self.roll_deg),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(param(&format!("{prefix}.{key}"), format!("must be >= 0 and finite, got {v}")));
+                return Err(param(
+                    &format!("{prefix}.{key}"),
+                    format!("must be >= 0 and finite, got {v}"),
+                ));
             }
         }
         Ok(())
@@ -201,7 +204,10 @@ impl TrackParams {
         }
         self.swarm.check("swarm")?;
         if !(-1.0..=1.0).contains(&self.lock_correlation) {
-            return Err(param("lock_correlation", format!("must be in [-1, 1], got {}", self.lock_correlation)));
+            return Err(param(
+                "lock_correlation",
+                format!("must be in [-1, 1], got {}", self.lock_correlation),
+            ));
         }
         for (key, v) in [
             ("gate_m", self.gate_m),
@@ -225,7 +231,10 @@ impl TrackParams {
             return Err(param("stretch.step", format!("must be positive, got {}", st.step)));
         }
         if !(st.ground_ns.is_finite() && st.ground_ns >= 0.0) {
-            return Err(param("stretch.ground_ns", format!("must be >= 0 and finite, got {}", st.ground_ns)));
+            return Err(param(
+                "stretch.ground_ns",
+                format!("must be >= 0 and finite, got {}", st.ground_ns),
+            ));
         }
         Ok(())
     }
@@ -567,19 +576,30 @@ mod tests {
         assert!((out.registered[2] - truth[2]).abs() < 0.006, "{out:?}");
         assert!(out.correlation > 0.95);
         // locked: the box shrinks
-        let next = t.track(&w.grid, DT_NS, &sweep, SAMPLES, 10_000_000, &ins).expect("fits");
+        let next = t
+            .track(&w.grid, DT_NS, &sweep, SAMPLES, 10_000_000, &ins)
+            .expect("fits");
         assert!(next.search_xy_m < out.search_xy_m);
     }
 
     #[test]
     fn each_lock_criterion_fails_on_its_own() {
         let p = TrackParams::default();
-        let good = Correlation { value: 0.95, overlap: 11 };
+        let good = Correlation {
+            value: 0.95,
+            overlap: 11,
+        };
         assert_eq!(lock_check(&p, good, 0.1, Some(0.0)), None);
         assert_eq!(lock_check(&p, good, 5.0, None), None);
-        let low = Correlation { value: 0.89, overlap: 11 };
+        let low = Correlation {
+            value: 0.89,
+            overlap: 11,
+        };
         assert_eq!(lock_check(&p, low, 0.1, Some(0.0)), Some(Miss::Correlation));
-        let few = Correlation { value: 0.99, overlap: 1 };
+        let few = Correlation {
+            value: 0.99,
+            overlap: 1,
+        };
         assert_eq!(lock_check(&p, few, 0.1, Some(0.0)), Some(Miss::Overlap));
         assert_eq!(lock_check(&p, good, 0.3, Some(0.0)), Some(Miss::Gate));
         // the gate widens with the time since the last lock
@@ -601,16 +621,28 @@ mod tests {
         assert!(first.locked);
         // a sweep of noise: no lock, the pose moves on at the INS velocity, the box grows
         let noise: Vec<f32> = (0..11 * SAMPLES).map(|i| ((i * 7919) % 101) as f32 - 50.0).collect();
-        let out = t.track(&w.grid, DT_NS, &noise, SAMPLES, 500_000_000, &ins).expect("fits");
+        let out = t
+            .track(&w.grid, DT_NS, &noise, SAMPLES, 500_000_000, &ins)
+            .expect("fits");
         assert!(!out.locked && out.miss.is_some(), "{out:?}");
         assert!((out.pose[0] - (first.pose[0] + 1.0)).abs() < 1e-9);
         assert!(out.sigma_m > first.sigma_m);
         // once dead reckoning is less certain than the GPS/INS, the GPS/INS position
-        let late = t.track(&w.grid, DT_NS, &noise, SAMPLES, 9_000_000_000, &ins).expect("fits");
-        assert!(!late.locked && late.pose[0] == ins.xy_m[0] && late.sigma_m == 0.5, "{late:?}");
-        let again = t.track(&w.grid, DT_NS, &noise, SAMPLES, 600_000_000, &ins).expect("fits");
+        let late = t
+            .track(&w.grid, DT_NS, &noise, SAMPLES, 9_000_000_000, &ins)
+            .expect("fits");
+        assert!(
+            !late.locked && late.pose[0] == ins.xy_m[0] && late.sigma_m == 0.5,
+            "{late:?}"
+        );
+        let again = t
+            .track(&w.grid, DT_NS, &noise, SAMPLES, 600_000_000, &ins)
+            .expect("fits");
         // a sweep of the wrong size is refused
-        assert!(t.track(&w.grid, DT_NS, &noise[1..], SAMPLES, 700_000_000, &ins).is_none());
+        assert!(
+            t.track(&w.grid, DT_NS, &noise[1..], SAMPLES, 700_000_000, &ins)
+                .is_none()
+        );
         assert!(!again.locked && again.search_xy_m > out.search_xy_m, "{again:?}");
     }
 
@@ -621,12 +653,22 @@ mod tests {
         assert!(p.check().expect_err("must fail").to_string().contains("search_min"));
         let mut p = TrackParams::default();
         p.swarm.inertia_start = 1.5;
-        assert!(p.check().expect_err("must fail").to_string().contains("swarm.inertia_start"));
+        assert!(
+            p.check()
+                .expect_err("must fail")
+                .to_string()
+                .contains("swarm.inertia_start")
+        );
         let p = TrackParams {
             lock_correlation: f64::NAN,
             ..TrackParams::default()
         };
-        assert!(p.check().expect_err("must fail").to_string().contains("lock_correlation"));
+        assert!(
+            p.check()
+                .expect_err("must fail")
+                .to_string()
+                .contains("lock_correlation")
+        );
         assert!(TrackParams::default().check().is_ok());
     }
 }

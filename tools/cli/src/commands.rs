@@ -385,5 +385,9 @@ fn inspect_map(dir: &Path, json: bool) -> Result<ExitCode> {
             writeln!(out, "  damaged: {d}")?;
         }
     }
-    Ok(if damaged.is_empty() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    Ok(if damaged.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }

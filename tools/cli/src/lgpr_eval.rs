@@ -52,9 +52,16 @@ fn truth_and_gps(path: &Path) -> Result<(Trajectory, Trajectory)> {
             .map(|(t, _)| t.clone())
             .with_context(|| format!("{}: no {what} topic", path.display()))
     };
-    let truth = find(PoseStamped::ROS_NAME, &|t: &str| t.contains("truth"), "ground-truth (PoseStamped)")?;
+    let truth = find(
+        PoseStamped::ROS_NAME,
+        &|t: &str| t.contains("truth"),
+        "ground-truth (PoseStamped)",
+    )?;
     let gps = find(Odometry::ROS_NAME, &|_: &str| true, "GPS/INS (Odometry)")?;
-    Ok((Trajectory::from_recording(&rec, &truth)?, Trajectory::from_recording(&rec, &gps)?))
+    Ok((
+        Trajectory::from_recording(&rec, &truth)?,
+        Trajectory::from_recording(&rec, &gps)?,
+    ))
 }
 
 fn cm(v: f64) -> String {
@@ -87,7 +94,9 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
             base_gps: &base_gps,
         };
         let samples = evaluate(&fixes, tracks, opts);
-        let name = run.file_stem().map_or_else(|| run.display().to_string(), |s| s.to_string_lossy().into_owned());
+        let name = run
+            .file_stem()
+            .map_or_else(|| run.display().to_string(), |s| s.to_string_lossy().into_owned());
         let Some(summary) = summarise(&samples) else {
             bail!(
                 "{}: no fix to evaluate ({} fixes; none locked, or none within {} m of the baseline)",
@@ -96,7 +105,10 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
                 args.max_offset_m
             );
         };
-        rows.push(Row { run: name.clone(), summary });
+        rows.push(Row {
+            run: name.clone(),
+            summary,
+        });
         all.push((name, samples));
     }
     let pooled: Vec<Sample> = all.iter().flat_map(|(_, s)| s.iter().copied()).collect();
@@ -117,8 +129,19 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
         ReportFormat::Text | ReportFormat::Markdown => {
             let md = args.format == ReportFormat::Markdown;
             let header = [
-                "run", "km/h", "fixes", "dist m", "lock %", "LGPR cross", "along", "total", "68% cross", "95% cross",
-                "GPS/INS cross", "along", "total",
+                "run",
+                "km/h",
+                "fixes",
+                "dist m",
+                "lock %",
+                "LGPR cross",
+                "along",
+                "total",
+                "68% cross",
+                "95% cross",
+                "GPS/INS cross",
+                "along",
+                "total",
             ];
             if md {
                 writeln!(out, "| {} |", header.join(" | "))?;
@@ -188,7 +211,12 @@ fn figures(dir: &Path, runs: &[(String, Vec<Sample>)]) -> Result<()> {
         "true speed (km/h)",
         "error (cm)",
         &[
-            (points("LGPR total error", &|s| (s.speed_mps * 3.6, 100.0 * s.lgpr[0].hypot(s.lgpr[1]))), Style::Points),
+            (
+                points("LGPR total error", &|s| {
+                    (s.speed_mps * 3.6, 100.0 * s.lgpr[0].hypot(s.lgpr[1]))
+                }),
+                Style::Points,
+            ),
             (rms_bins, Style::Lines),
         ],
     )?;
@@ -243,8 +271,14 @@ fn figures(dir: &Path, runs: &[(String, Vec<Sample>)]) -> Result<()> {
         "lateral offset (m)",
         "|error| (cm)",
         &[
-            (points("cross-track", &|s| (s.offset_m, 100.0 * s.lgpr[1].abs())), Style::Points),
-            (points("along-track", &|s| (s.offset_m, 100.0 * s.lgpr[0].abs())), Style::Points),
+            (
+                points("cross-track", &|s| (s.offset_m, 100.0 * s.lgpr[1].abs())),
+                Style::Points,
+            ),
+            (
+                points("along-track", &|s| (s.offset_m, 100.0 * s.lgpr[0].abs())),
+                Style::Points,
+            ),
         ],
     )?;
     Ok(())

@@ -46,21 +46,34 @@ impl GridSpec {
     /// `Param`: a non-positive or non-finite value, more than 8192 points a side, a radius
     /// below half the spacing (points between columns would stay empty).
     pub fn check(&self, prefix: &str) -> Result<(), Error> {
-        for (key, v) in [("size_m", self.size_m), ("spacing_m", self.spacing_m), ("radius_m", self.radius_m)] {
+        for (key, v) in [
+            ("size_m", self.size_m),
+            ("spacing_m", self.spacing_m),
+            ("radius_m", self.radius_m),
+        ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(param(&format!("{prefix}.{key}"), format!("must be positive and finite, got {v}")));
+                return Err(param(
+                    &format!("{prefix}.{key}"),
+                    format!("must be positive and finite, got {v}"),
+                ));
             }
         }
         if self.size_m / self.spacing_m > 8192.0 {
             return Err(param(
                 &format!("{prefix}.spacing_m"),
-                format!("{} m points over {} m is more than 8192 a side", self.spacing_m, self.size_m),
+                format!(
+                    "{} m points over {} m is more than 8192 a side",
+                    self.spacing_m, self.size_m
+                ),
             ));
         }
         if self.radius_m < 0.5 * self.spacing_m {
             return Err(param(
                 &format!("{prefix}.radius_m"),
-                format!("{} m is less than half the spacing ({} m)", self.radius_m, self.spacing_m),
+                format!(
+                    "{} m is less than half the spacing ({} m)",
+                    self.radius_m, self.spacing_m
+                ),
             ));
         }
         Ok(())
@@ -160,11 +173,7 @@ impl LocalGrid {
     ///
     /// # Errors
     /// `Io` reading a tile.
-    pub fn from_map(
-        map: &MapReader,
-        spec: &GridSpec,
-        centre: [f64; 2],
-    ) -> Result<(Self, Vec<StoreError>), StoreError> {
+    pub fn from_map(map: &MapReader, spec: &GridSpec, centre: [f64; 2]) -> Result<(Self, Vec<StoreError>), StoreError> {
         Self::from_map_with_window(map, spec, centre, 0)
     }
 
@@ -180,7 +189,12 @@ impl LocalGrid {
         window_len: usize,
     ) -> Result<(Self, Vec<StoreError>), StoreError> {
         let reach = spec.size_m / 2.0 + spec.spacing_m + spec.radius_m;
-        let window = [centre[0] - reach, centre[1] - reach, centre[0] + reach, centre[1] + reach];
+        let window = [
+            centre[0] - reach,
+            centre[1] - reach,
+            centre[0] + reach,
+            centre[1] + reach,
+        ];
         let mut sources = Vec::new();
         let mut damage = Vec::new();
         for key in map.tiles_over(window[0], window[1], window[2], window[3]) {
@@ -316,7 +330,11 @@ mod tests {
         let s = g.slot_at(p[0], p[1]).expect("must succeed");
         let (w1, w2) = (1.0 / 0.03, 1.0 / 0.07);
         let want = (w1 * 1.0 + w2 * 4.0) / (w1 + w2);
-        assert!((f64::from(g.column(s)[0]) - want).abs() < 1e-5, "{} vs {want}", g.column(s)[0]);
+        assert!(
+            (f64::from(g.column(s)[0]) - want).abs() < 1e-5,
+            "{} vs {want}",
+            g.column(s)[0]
+        );
         // a point 0.17 m from the nearest is empty; one 0.07 m from only the first has its value
         assert!(g.slot_at(p[0] - 0.2, p[1]).is_none());
         let s = g.slot_at(p[0] - 0.1, p[1]).expect("must succeed");
@@ -345,11 +363,21 @@ mod tests {
             radius_m: 0.01,
             ..GridSpec::default()
         };
-        assert!(bad.check("grid").expect_err("must fail").to_string().contains("grid.radius_m"));
+        assert!(
+            bad.check("grid")
+                .expect_err("must fail")
+                .to_string()
+                .contains("grid.radius_m")
+        );
         let bad = GridSpec {
             spacing_m: f64::NAN,
             ..GridSpec::default()
         };
-        assert!(bad.check("grid").expect_err("must fail").to_string().contains("grid.spacing_m"));
+        assert!(
+            bad.check("grid")
+                .expect_err("must fail")
+                .to_string()
+                .contains("grid.spacing_m")
+        );
     }
 }

@@ -79,11 +79,13 @@ impl GridPager {
             .spawn(move || {
                 for centre in req_rx {
                     let start = Instant::now();
-                    let out = LocalGrid::from_map_with_window(&map, &worker_spec, centre, window_len).map(|(grid, damage)| Gridded {
-                        grid: Arc::new(grid),
-                        took: start.elapsed(),
-                        damage,
-                    });
+                    let out = LocalGrid::from_map_with_window(&map, &worker_spec, centre, window_len).map(
+                        |(grid, damage)| Gridded {
+                            grid: Arc::new(grid),
+                            took: start.elapsed(),
+                            damage,
+                        },
+                    );
                     if res_tx.send(out).is_err() {
                         break;
                     }

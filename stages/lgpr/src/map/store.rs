@@ -91,7 +91,9 @@ pub enum StoreError {
         data: String,
     },
     /// A tile ends inside a block.
-    #[error("{path}: block {block} at byte {offset} is cut short ({message}); the {good_columns} columns before it are intact")]
+    #[error(
+        "{path}: block {block} at byte {offset} is cut short ({message}); the {good_columns} columns before it are intact"
+    )]
     Truncated {
         /// The tile file.
         path: PathBuf,
@@ -105,7 +107,9 @@ pub enum StoreError {
         good_columns: usize,
     },
     /// A block's bytes are not what was written.
-    #[error("{path}: block {block} at byte {offset} is corrupt ({message}); the {good_columns} columns before it are intact")]
+    #[error(
+        "{path}: block {block} at byte {offset} is corrupt ({message}); the {good_columns} columns before it are intact"
+    )]
     Corrupt {
         /// The tile file.
         path: PathBuf,
@@ -303,7 +307,11 @@ fn quantise(samples: &[f32], out: &mut Vec<u8>) -> f32 {
     let peak = samples.iter().fold(0.0_f32, |m, v| m.max(v.abs()));
     let scale = if peak > 0.0 { peak / 127.0 } else { 0.0 };
     let inv = if scale > 0.0 { 1.0 / scale } else { 0.0 };
-    out.extend(samples.iter().map(|v| ((v * inv).round().clamp(-127.0, 127.0) as i8) as u8));
+    out.extend(
+        samples
+            .iter()
+            .map(|v| ((v * inv).round().clamp(-127.0, 127.0) as i8) as u8),
+    );
     scale
 }
 
@@ -669,7 +677,18 @@ impl MapReader {
 
 /// Appends the columns of one decompressed block (whole columns, checked by the caller).
 fn decode_columns(raw: &[u8], samples: usize, within: Option<[f64; 4]>, out: &mut Columns) {
-    let f64_at = |b: &[u8], i: usize| f64::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3], b[i + 4], b[i + 5], b[i + 6], b[i + 7]]);
+    let f64_at = |b: &[u8], i: usize| {
+        f64::from_le_bytes([
+            b[i],
+            b[i + 1],
+            b[i + 2],
+            b[i + 3],
+            b[i + 4],
+            b[i + 5],
+            b[i + 6],
+            b[i + 7],
+        ])
+    };
     for c in raw.chunks_exact(COLUMN_HEADER + samples) {
         let x = f64_at(c, 0);
         let y = f64_at(c, 8);
@@ -694,7 +713,9 @@ mod tests {
     use super::*;
 
     fn column(i: usize, n: usize) -> Vec<f32> {
-        (0..n).map(|k| ((i * 7 + k) as f32 * 0.37).sin() * (1.0 + i as f32)).collect()
+        (0..n)
+            .map(|k| ((i * 7 + k) as f32 * 0.37).sin() * (1.0 + i as f32))
+            .collect()
     }
 
     #[test]
@@ -703,7 +724,8 @@ mod tests {
         let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 40, 0.163)).expect("must succeed");
         for i in 0..3000 {
             let x = i as f64 * 0.04 - 10.0; // crosses tile x = -1 / 0 / 1 / 2
-            w.push(x, 3.0, i as i64, (i % 11) as u16, &column(i, 40)).expect("must succeed");
+            w.push(x, 3.0, i as i64, (i % 11) as u16, &column(i, 40))
+                .expect("must succeed");
         }
         w.add_length(120.0);
         let info = w.finish().expect("must succeed");
@@ -728,7 +750,9 @@ mod tests {
         }
         assert_eq!(seen, 3000);
         // a window keeps only what is inside
-        let t = r.read_tile(TileKey { ix: 0, iy: 0 }, Some([0.0, 0.0, 10.0, 10.0])).expect("must succeed");
+        let t = r
+            .read_tile(TileKey { ix: 0, iy: 0 }, Some([0.0, 0.0, 10.0, 10.0]))
+            .expect("must succeed");
         let inside = (0..3000)
             .map(|i| i as f64 * 0.04 - 10.0)
             .filter(|x| (0.0..=10.0).contains(x))
@@ -753,7 +777,10 @@ mod tests {
         let t = r.read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
         assert_eq!(t.columns.len(), BLOCK_COLUMNS);
         let e = t.damage.expect("must succeed").to_string();
-        assert!(e.contains("0_0.tile") && e.contains("block 1") && e.contains("cut short"), "{e}");
+        assert!(
+            e.contains("0_0.tile") && e.contains("block 1") && e.contains("cut short"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -769,7 +796,10 @@ mod tests {
         let last = bytes.len() - 1;
         bytes[last] ^= 0x55;
         fs::write(&path, bytes).expect("must succeed");
-        let t = MapReader::open(dir.path()).expect("must succeed").read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
+        let t = MapReader::open(dir.path())
+            .expect("must succeed")
+            .read_tile(TileKey { ix: 0, iy: 0 }, None)
+            .expect("must succeed");
         assert_eq!(t.columns.len(), 0);
         assert!(t.damage.expect("must succeed").to_string().contains("CRC"));
     }
@@ -777,9 +807,14 @@ mod tests {
     #[test]
     fn another_version_or_format_is_refused_by_name() {
         let dir = tempfile::tempdir().expect("must succeed");
-        MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2)).expect("must succeed").finish().expect("must succeed");
+        MapWriter::create(dir.path(), MapInfo::new(50.0, 16, 0.2))
+            .expect("must succeed")
+            .finish()
+            .expect("must succeed");
         let path = dir.path().join("manifest.json");
-        let text = fs::read_to_string(&path).expect("must succeed").replace("\"version\": 1", "\"version\": 7");
+        let text = fs::read_to_string(&path)
+            .expect("must succeed")
+            .replace("\"version\": 1", "\"version\": 7");
         fs::write(&path, text).expect("must succeed");
         let e = MapReader::open(dir.path()).expect_err("must fail").to_string();
         assert!(e.contains("manifest.json") && e.contains("version 7"), "{e}");
@@ -787,7 +822,12 @@ mod tests {
         let e = MapReader::open(dir.path()).expect_err("must fail").to_string();
         assert!(e.contains("format is \"something\""), "{e}");
         fs::write(&path, "not json").expect("must succeed");
-        assert!(MapReader::open(dir.path()).expect_err("must fail").to_string().contains("not a gprflow LGPR map"));
+        assert!(
+            MapReader::open(dir.path())
+                .expect_err("must fail")
+                .to_string()
+                .contains("not a gprflow LGPR map")
+        );
     }
 
     #[test]
@@ -800,9 +840,14 @@ mod tests {
         w.push(1.5, 1.0, 1, 0, &column(1, 16)).expect("must succeed");
         let info = w.finish().expect("must succeed");
         assert_eq!((info.passes, info.columns), (2, 2));
-        let t = MapReader::open(dir.path()).expect("must succeed").read_tile(TileKey { ix: 0, iy: 0 }, None).expect("must succeed");
+        let t = MapReader::open(dir.path())
+            .expect("must succeed")
+            .read_tile(TileKey { ix: 0, iy: 0 }, None)
+            .expect("must succeed");
         assert_eq!(t.columns.len(), 2);
-        let e = MapWriter::open(dir.path(), 50.0, 17, 0.2).expect_err("must fail").to_string();
+        let e = MapWriter::open(dir.path(), 50.0, 17, 0.2)
+            .expect_err("must fail")
+            .to_string();
         assert!(e.contains("samples") && e.contains("16") && e.contains("17"), "{e}");
     }
 
@@ -812,7 +857,10 @@ mod tests {
         let mut w = MapWriter::create(dir.path(), MapInfo::new(50.0, 4, 0.2)).expect("must succeed");
         assert!(w.push(0.0, 0.0, 0, 0, &[0.0; 3]).is_err());
         assert!(w.push(f64::NAN, 0.0, 0, 0, &[0.0; 4]).is_err());
-        let e = w.push(0.0, 0.0, 0, 3, &[0.0, f32::NAN, 0.0, 0.0]).expect_err("must fail").to_string();
+        let e = w
+            .push(0.0, 0.0, 0, 3, &[0.0, f32::NAN, 0.0, 0.0])
+            .expect_err("must fail")
+            .to_string();
         assert!(e.contains("channel 3 sample 1"), "{e}");
         assert_eq!(w.finish().expect("must succeed").columns, 0);
     }

@@ -54,7 +54,11 @@ pub(crate) fn yaw_of(q: &Quaternion) -> f64 {
 
 fn interpolate(a: &Placed, b: &Placed, stamp_ns: i64) -> Placed {
     let span = (b.stamp_ns - a.stamp_ns) as f64;
-    let f = if span > 0.0 { (stamp_ns - a.stamp_ns) as f64 / span } else { 0.0 };
+    let f = if span > 0.0 {
+        (stamp_ns - a.stamp_ns) as f64 / span
+    } else {
+        0.0
+    };
     let mut dyaw = b.yaw - a.yaw;
     dyaw = (dyaw + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
     Placed {
@@ -151,7 +155,11 @@ impl LgprMapStage {
 
     fn on_sweep(&mut self, input: &Input<'_>, s: &Sweep<'_>) {
         if s.domain != Sweep::DOMAIN_TIME {
-            self.drops.record(Self::NAME, input, &format_args!("domain {}: not a time-domain sweep", s.domain));
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!("domain {}: not a time-domain sweep", s.domain),
+            );
             return;
         }
         let (channels, samples) = (s.channel_count as usize, s.bin_count as usize);
@@ -263,7 +271,8 @@ impl Stage for LgprMapStage {
                 if [placed.x, placed.y, placed.yaw].iter().all(|v| v.is_finite()) {
                     self.on_pose(placed)?;
                 } else {
-                    self.drops.record(Self::NAME, &input, &"non-finite position or orientation");
+                    self.drops
+                        .record(Self::NAME, &input, &"non-finite position or orientation");
                 }
             }
             "pose" => {
@@ -277,7 +286,8 @@ impl Stage for LgprMapStage {
                 if [placed.x, placed.y, placed.yaw].iter().all(|v| v.is_finite()) {
                     self.on_pose(placed)?;
                 } else {
-                    self.drops.record(Self::NAME, &input, &"non-finite position or orientation");
+                    self.drops
+                        .record(Self::NAME, &input, &"non-finite position or orientation");
                 }
             }
             "sweep" => {

@@ -90,7 +90,11 @@ impl LgprTrackStage {
     fn on_sweep(&mut self, input: &Input<'_>, s: &Sweep<'_>, out: &mut Outputs) -> Result<(), StageError> {
         let samples = self.map.info().samples as usize;
         if s.domain != Sweep::DOMAIN_TIME {
-            self.drops.record(Self::NAME, input, &format_args!("domain {}: not a time-domain sweep", s.domain));
+            self.drops.record(
+                Self::NAME,
+                input,
+                &format_args!("domain {}: not a time-domain sweep", s.domain),
+            );
             return Ok(());
         }
         if s.bin_count as usize != samples
@@ -151,9 +155,13 @@ impl LgprTrackStage {
         } else {
             [0.0, 0.0]
         };
-        let pager = self
-            .pager
-            .get_or_insert_with(|| GridPager::new(self.map.clone(), self.params.grid.clone(), self.params.tracker.window_len));
+        let pager = self.pager.get_or_insert_with(|| {
+            GridPager::new(
+                self.map.clone(),
+                self.params.grid.clone(),
+                self.params.tracker.window_len,
+            )
+        });
         let events = pager
             .update([expected[0], expected[1]], direction)
             .map_err(StageError::failed)?;
@@ -210,8 +218,7 @@ impl LgprTrackStage {
 impl Stage for LgprTrackStage {
     type Params = LgprTrackParams;
     const NAME: &'static str = "lgpr_track";
-    const ABOUT: &'static str =
-        "LGPR tracking: each sweep registered in 5 DOF against the prior map's local grid by particle swarm; map fixes out";
+    const ABOUT: &'static str = "LGPR tracking: each sweep registered in 5 DOF against the prior map's local grid by particle swarm; map fixes out";
 
     fn inputs() -> InputPorts {
         let port = |name: &str, ty: &str| InputSpec {
@@ -299,7 +306,13 @@ impl Stage for LgprTrackStage {
     fn finish(&mut self, _out: &mut Outputs) -> Result<(), StageError> {
         self.drops.report(Self::NAME);
         let c = &self.counts;
-        let pct = |n: u64| if c.sweeps > 0 { 100.0 * n as f64 / c.sweeps as f64 } else { 0.0 };
+        let pct = |n: u64| {
+            if c.sweeps > 0 {
+                100.0 * n as f64 / c.sweeps as f64
+            } else {
+                0.0
+            }
+        };
         let (grids, grid_p50_ms, grid_max_ms, stalls) = match &self.pager {
             Some(p) => {
                 let mut t = p.grid_times_s.clone();
@@ -317,7 +330,14 @@ impl Stage for LgprTrackStage {
             low_overlap = c.misses[1],
             gated = c.misses[2],
             without_ins = c.no_ins,
-            evaluations_per_sweep = format!("{:.0}", if c.sweeps > 0 { c.evaluations as f64 / c.sweeps as f64 } else { 0.0 }),
+            evaluations_per_sweep = format!(
+                "{:.0}",
+                if c.sweeps > 0 {
+                    c.evaluations as f64 / c.sweeps as f64
+                } else {
+                    0.0
+                }
+            ),
             grids,
             grid_p50_ms = format!("{grid_p50_ms:.0}"),
             grid_max_ms = format!("{grid_max_ms:.0}"),

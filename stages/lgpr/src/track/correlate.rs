@@ -98,7 +98,11 @@ impl PreparedSweep {
             let dst = &mut self.a[k * self.len..(k + 1) * self.len];
             for (j, out) in dst.iter_mut().enumerate() {
                 let d = (self.start + j) as f64;
-                let at = if d <= origin { d } else { (origin + stretch * (d - origin)).min(last) };
+                let at = if d <= origin {
+                    d
+                } else {
+                    (origin + stretch * (d - origin)).min(last)
+                };
                 let i = at.floor() as usize;
                 let f = (at - i as f64) as f32;
                 let next = src[(i + 1).min(samples - 1)];
@@ -243,7 +247,11 @@ mod tests {
         assert!(sweep.load(&values, samples));
         let dt = 0.163;
         let c = Correlator::new(&g, dt);
-        for pose in [[0.1, -0.2, 0.0, 0.3, 0.0], [0.0, 0.0, 0.04, -0.5, 0.02], [0.8, 0.75, -0.01, 0.0, -0.03]] {
+        for pose in [
+            [0.1, -0.2, 0.0, 0.3, 0.0],
+            [0.0, 0.0, 0.04, -0.5, 0.02],
+            [0.8, 0.75, -0.01, 0.0, -0.03],
+        ] {
             // the direct formula, one term at a time in f64
             let (mut ab, mut aa, mut bb, mut n) = (0.0, 0.0, 0.0, 0);
             for k in 0..5 {
@@ -272,7 +280,10 @@ mod tests {
         let t = Correlator::new(&tabulated, dt);
         for pose in [[0.1, -0.2, 0.0, 0.3, 0.0], [0.0, 0.0, 0.04, -0.5, 0.02]] {
             let (a, b) = (c.correlate(&sweep, &pose), t.correlate(&sweep, &pose));
-            assert!((a.value - b.value).abs() < 1e-6 && a.overlap == b.overlap, "{a:?} vs {b:?}");
+            assert!(
+                (a.value - b.value).abs() < 1e-6 && a.overlap == b.overlap,
+                "{a:?} vs {b:?}"
+            );
         }
         // off the grid: nothing overlaps, correlation 0
         let off = c.correlate(&sweep, &[10.0, 10.0, 0.0, 0.0, 0.0]);

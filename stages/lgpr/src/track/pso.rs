@@ -84,7 +84,10 @@ impl SwarmParams {
         }
         for (key, v) in [("cognitive", self.cognitive), ("social", self.social)] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(param(&format!("{prefix}.{key}"), format!("must be >= 0 and finite, got {v}")));
+                return Err(param(
+                    &format!("{prefix}.{key}"),
+                    format!("must be >= 0 and finite, got {v}"),
+                ));
             }
         }
         Ok(())
@@ -216,7 +219,11 @@ mod tests {
         let r = swarm.search(&[0.0; 5], &[2.0, 2.0, 0.05, 0.035, 0.035], 60, 60, f);
         assert_eq!(r.evaluations, 3600);
         for d in 0..5 {
-            assert!((r.best[d] - peak[d]).abs() < 0.05 * [1.0, 1.0, 0.05, 0.02, 0.03][d] + 1e-3, "{:?}", r.best);
+            assert!(
+                (r.best[d] - peak[d]).abs() < 0.05 * [1.0, 1.0, 0.05, 0.02, 0.03][d] + 1e-3,
+                "{:?}",
+                r.best
+            );
         }
     }
 
