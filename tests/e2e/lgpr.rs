@@ -58,8 +58,9 @@ fn build_map(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
 fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (map_rec, map) = build_map(dir.path());
-    // 48 km/h, 0.3 m to the left of the mapping line, for 12 s: about 140 m, inside the map
-    let track_rec = sim(dir.path(), "track_48", "12");
+    // up to 48 km/h, 0.3 m to the left of the mapping line, for 20 s from standstill: about
+    // 180 m, inside the map
+    let track_rec = sim(dir.path(), "track_48", "20");
     let fixes = dir.path().join("fixes.mcap");
     let o = gprflow(&[
         "launch",
@@ -155,7 +156,7 @@ fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
     let fixes = dir.path().join("fixes.mcap");
     let o = gprflow(&[
         "launch",
-        "tests/graphs/valid-lgpr-track-processed.yaml",
+        "tests/e2e/graphs/lgpr-track-processed.yaml",
         "--set",
         &format!("recording={}", path(&bad)),
         "--set",

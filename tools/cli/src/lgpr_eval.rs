@@ -148,7 +148,7 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
                 writeln!(out, "|{}", "---|".repeat(header.len()))?;
             } else {
                 writeln!(out, "RMS errors in cm over distance (seed 001 eq. 11)")?;
-                writeln!(out, "{}", header.map(|h| format!("{h:>13}")).join(""))?;
+                writeln!(out, "{}", header.map(|h| format!("{h:>14}")).join(""))?;
             }
             for r in &rows {
                 let s = &r.summary;
@@ -170,7 +170,7 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
                 if md {
                     writeln!(out, "| {} |", cells.join(" | "))?;
                 } else {
-                    writeln!(out, "{}", cells.map(|c| format!("{c:>13}")).join(""))?;
+                    writeln!(out, "{}", cells.map(|c| format!("{c:>14}")).join(""))?;
                 }
             }
         }

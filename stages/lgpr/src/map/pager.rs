@@ -57,6 +57,8 @@ pub struct GridPager {
     requests: SyncSender<[f64; 2]>,
     results: Receiver<Result<Gridded, StoreError>>,
     pending: bool,
+    /// Centre of the grid requested and not yet switched to.
+    next_centre: Option<[f64; 2]>,
     worker: Option<JoinHandle<()>>,
     /// Gridding times, s (for the report).
     pub grid_times_s: Vec<f64>,
@@ -99,6 +101,7 @@ impl GridPager {
             requests: req_tx,
             results: res_rx,
             pending: false,
+            next_centre: None,
             worker,
             grid_times_s: Vec::new(),
             stalls: 0,
@@ -116,6 +119,7 @@ impl GridPager {
             what: "the gridding thread has stopped".into(),
         })?;
         self.pending = true;
+        self.next_centre = Some(centre);
         Ok(())
     }
 
@@ -135,6 +139,17 @@ impl GridPager {
         self.accept(g)
     }
 
+    /// Makes the requested grid current, waiting for it when not yet made (`true` then).
+    fn switch(&mut self) -> Result<bool, StoreError> {
+        let waited = self.next.is_none();
+        if waited {
+            self.wait()?;
+        }
+        self.current = self.next.take().map(|g| g.grid);
+        self.next_centre = None;
+        Ok(waited)
+    }
+
     /// Makes sure a grid covers the vehicle at `position` moving along `direction` (a unit
     /// vector, or zero when stopped), and asks for the next one when due.
     ///
@@ -149,36 +164,39 @@ impl GridPager {
         }
         let Some(current) = self.current.clone() else {
             // the first grid: nothing to track on until it exists
-            if !self.pending && self.next.is_none() {
+            if self.next_centre.is_none() {
                 self.request(position)?;
             }
-            if self.next.is_none() {
-                self.wait()?;
-            }
-            self.current = self.next.take().map(|g| g.grid);
+            self.switch()?;
             ev.switched = true;
             return Ok(ev);
         };
         let size = self.spec.size_m;
         let usable = size / 2.0 - MARGIN * size;
-        if let Some(next) = &self.next
-            && next.grid.distance_from_centre(position[0], position[1])
-                < current.distance_from_centre(position[0], position[1])
-        {
-            self.current = self.next.take().map(|g| g.grid);
+        let here = current.distance_from_centre(position[0], position[1]);
+        // the switch is decided on the requested centre, whether or not its grid is ready, so
+        // that a run tracks on the same grids however fast it is replayed (a late grid stalls)
+        let chebyshev = |c: [f64; 2]| (position[0] - c[0]).abs().max((position[1] - c[1]).abs());
+        if self.next_centre.is_some_and(|c| chebyshev(c) < here) {
+            ev.stalled = self.switch()?;
             ev.switched = true;
-        } else if current.distance_from_centre(position[0], position[1]) > usable {
-            if !self.pending && self.next.is_none() {
-                self.request(position)?;
-                ev.requested = true;
+        } else if here > usable {
+            // off the usable part with no grid on the way (a jump of the GPS/INS): one here
+            if self.next_centre.is_some() {
+                if self.next.is_none() {
+                    self.wait()?;
+                }
+                self.next = None;
+                self.next_centre = None;
             }
-            if self.next.is_none() {
-                self.wait()?;
-            }
-            self.stalls += 1;
+            self.request(position)?;
+            self.switch()?;
+            ev.requested = true;
             ev.stalled = true;
-            self.current = self.next.take().map(|g| g.grid);
             ev.switched = true;
+        }
+        if ev.stalled {
+            self.stalls += 1;
         }
         let Some(current) = self.current.clone() else {
             return Ok(ev);
@@ -187,7 +205,7 @@ impl GridPager {
         let (dx, dy) = (position[0] - c[0], position[1] - c[1]);
         let ahead = dx * direction[0] + dy * direction[1];
         let far = current.distance_from_centre(position[0], position[1]);
-        if !self.pending && self.next.is_none() && (ahead > TRIGGER * size || far > 2.0 * TRIGGER * size) {
+        if self.next_centre.is_none() && (ahead > TRIGGER * size || far > 2.0 * TRIGGER * size) {
             let reach = LOOKAHEAD * size;
             self.request([position[0] + reach * direction[0], position[1] + reach * direction[1]])?;
             ev.requested = true;

@@ -64,6 +64,8 @@ pub struct LgprTrackStage {
     counts: Counts,
     drops: Drops,
     damage_reported: usize,
+    /// The lock state of the last fix, for logging its changes.
+    was_locked: bool,
 }
 
 /// This process's peak resident set, MB (Linux: `VmHWM` of `/proc/self/status`).
@@ -186,6 +188,17 @@ impl LgprTrackStage {
             Some(Miss::Overlap) => self.counts.misses[1] += 1,
             Some(Miss::Gate) => self.counts.misses[2] += 1,
         }
+        if r.locked != self.was_locked {
+            tracing::debug!(
+                stamp,
+                correlation = r.correlation,
+                overlap = r.overlap,
+                miss = ?r.miss,
+                "lgpr_track: {}",
+                if r.locked { "locked" } else { "lost lock" }
+            );
+            self.was_locked = r.locked;
+        }
         let [x, y, dh, yaw, roll] = r.pose;
         let t = &self.params.tracker;
         let mut cov = [0.0; 36];
@@ -270,6 +283,7 @@ impl Stage for LgprTrackStage {
             counts: Counts::default(),
             drops: Drops::new(),
             damage_reported: 0,
+            was_locked: false,
         })
     }
 
