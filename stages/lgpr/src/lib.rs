@@ -5,7 +5,7 @@
 //! - [`sfcw`]: self and factory calibration (eq. 2-4), the 8 ns delay, the Chebyshev window,
 //!   the complex-to-real inverse FFT, the distance-based IIR high-pass (eq. 5-7) and the range
 //!   gain.
-//! - [`array`]: where each channel sits on the vehicle.
+//! - [`mod@array`]: where each channel sits on the vehicle.
 //! - [`map`]: the on-disk map store, the 50 m local grid (§2.2.1) and its double buffer.
 //! - [`track`]: the correlation of eq. 8, the particle swarm of eq. 9-10 and the tracker's
 //!   lock logic (§2.2.2).
