@@ -62,9 +62,10 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     // 180 m, inside the map
     let track_rec = sim(dir.path(), "track_48", "20");
     let fixes = dir.path().join("fixes.mcap");
+    // the fusion graph: the tracker's map fixes and the estimator fusing them in one run
     let o = gprflow(&[
         "launch",
-        "graphs/lgpr-track.yaml",
+        "graphs/lgpr-fuse.yaml",
         "--set",
         &format!("recording={}", path(&track_rec)),
         "--set",
@@ -96,6 +97,25 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     assert!(r["distance_m"].as_f64().expect("number") > 100.0, "{r}");
     // the GPS/INS alone is an order of magnitude worse
     assert!(gps_cross > 3.0 * cross, "GPS/INS cross {gps_cross:.1} cm: {r}");
+    // the estimator's fusion of the locked fixes with the IMU, the wheel and the GPS/INS
+    let e = gprflow(&[
+        "lgpr-eval",
+        path(&fixes),
+        "--baseline",
+        path(&map_rec),
+        "--topic",
+        "/estimate/state",
+        "--format",
+        "json",
+    ]);
+    assert!(e.status.success(), "{}", stderr(&e));
+    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
+    let f = &rows[0];
+    let (total, gps_total) = (cm(&f["lgpr"]["total_m"]), cm(&f["gps"]["total_m"]));
+    assert!(
+        total <= 8.0 && gps_total > 5.0 * total,
+        "fused RMS {total:.1} cm, GPS/INS {gps_total:.1} cm: {f}"
+    );
 }
 
 #[test]

@@ -2,9 +2,9 @@
 //! messages. Inputs arrive merged in stamp order (the runtime's watermark merge).
 
 use gprflow_msg::{
-    Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Point, Pose, PoseStamped,
-    PoseWithCovariance, Quaternion, Registration, RegistrationCheck, StateEstimate, Trajectory, Vector3 as Vector3Msg,
-    WheelOdometry,
+    Header, HoughLine as HoughLineMsg, Imu, LineMap, LineObservation, MapFix, Message, Odometry, Point, Pose,
+    PoseStamped, PoseWithCovariance, Quaternion, Registration, RegistrationCheck, StateEstimate, Trajectory,
+    Vector3 as Vector3Msg, WheelOdometry,
 };
 use gprflow_stage::{
     Drops, Input, InputPorts, InputSpec, Output, Outputs, ParamError, PortSpec, Ports, Stage, StageError,
@@ -181,8 +181,11 @@ pub struct EstimateStage {
     last_stamp_ns: i64,
     /// The first `initial_pose` message was seen (later ones are ignored).
     origin_seen: bool,
-    /// No `initial_pose` input but a `map_fix` one: the first locked map fix anchors the
-    /// estimate (its position and orientation are the first state's).
+    /// No `initial_pose` input but a `gps` one: the first GPS/INS message anchors the estimate
+    /// (its position on the ground plane and its orientation are the first state's).
+    anchor_on_gps: bool,
+    /// No `initial_pose` or `gps` input but a `map_fix` one: the first locked map fix anchors
+    /// the estimate (its position and orientation are the first state's).
     anchor_on_map_fix: bool,
     /// Map fixes not used because the tracker was not locked (dead-reckoned, not measured).
     unlocked_map_fixes: u64,
@@ -329,6 +332,8 @@ impl Stage for EstimateStage {
             port("registration", Registration::TYPE_NAME, true),
             port("line", LineObservation::TYPE_NAME, true),
             port("map_fix", MapFix::TYPE_NAME, true),
+            // GPS/INS positions as ground-plane position factors, with their own covariance
+            port("gps", Odometry::TYPE_NAME, true),
         ])
     }
 
@@ -350,8 +355,10 @@ impl Stage for EstimateStage {
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
         let mut est = OnlineEstimator::new(params.online());
-        let anchor_on_map_fix = ports.input("initial_pose").is_none() && ports.input("map_fix").is_some();
-        if ports.input("initial_pose").is_some() || anchor_on_map_fix {
+        let no_initial_pose = ports.input("initial_pose").is_none();
+        let anchor_on_gps = no_initial_pose && ports.input("gps").is_some();
+        let anchor_on_map_fix = no_initial_pose && !anchor_on_gps && ports.input("map_fix").is_some();
+        if !no_initial_pose || anchor_on_gps || anchor_on_map_fix {
             est.wait_for_origin();
         }
         Ok(Self {
@@ -367,6 +374,7 @@ impl Stage for EstimateStage {
             params,
             last_stamp_ns: 0,
             origin_seen: false,
+            anchor_on_gps,
             anchor_on_map_fix,
             unlocked_map_fixes: 0,
             drops: Drops::new(),
@@ -472,6 +480,28 @@ impl Stage for EstimateStage {
                 let added = self
                     .est
                     .map_fix(input.stamp_ns(), Vector2::new(p.x, p.y), [sig(c[0]), sig(c[7])]);
+                self.accept(&input, added)?;
+            }
+            "gps" => {
+                let m: Odometry = input.decode()?;
+                let pose = &m.pose.pose;
+                if self.anchor_on_gps && !self.origin_seen {
+                    let mut anchor = *pose;
+                    anchor.position.z = 0.0;
+                    self.origin_seen = self.est.set_origin(pose_from_msg(&anchor));
+                    tracing::info!(
+                        seq = input.seq(),
+                        "estimate: the first GPS/INS message anchors the estimate"
+                    );
+                    return Ok(());
+                }
+                let c = &m.pose.covariance.0;
+                let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
+                let added = self.est.map_fix(
+                    input.stamp_ns(),
+                    Vector2::new(pose.position.x, pose.position.y),
+                    [sig(c[0]), sig(c[7])],
+                );
                 self.accept(&input, added)?;
             }
             _ => {}

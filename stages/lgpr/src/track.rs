@@ -9,7 +9,10 @@
 //! the box's size. The tracker is locked when the correlation exceeds `lock_correlation`
 //! (0.9), at least `min_overlap` (2) channels are over mapped data, and the solution lies
 //! within `gate_m + gate_m_per_s t` of the expectation (`t` since the last lock); otherwise
-//! the pose is dead-reckoned on the GPS/INS velocity.
+//! the pose is dead-reckoned on the GPS/INS velocity. Acquiring (before the first lock, and
+//! once the pose has fallen back to the GPS/INS) also needs `acquire_overlap` (4) channels
+//! over the map: with only the search box as a gate, a box as wide as the GPS/INS error lets
+//! the swarm slide the array sideways until a channel or two match by chance.
 
 pub mod correlate;
 pub mod pso;
@@ -94,6 +97,9 @@ pub struct TrackParams {
     pub lock_correlation: f64,
     /// Channels over mapped data needed to lock. Default 2 (seed 001).
     pub min_overlap: u32,
+    /// Channels over mapped data needed to acquire a lock: before the first lock and once the
+    /// dead-reckoned pose is less certain than the GPS/INS (`ins_sigma_m`). Default 4.
+    pub acquire_overlap: u32,
     /// Largest distance of a locked solution from the expectation right after a lock, m.
     /// Default 0.25.
     pub gate_m: f64,
@@ -167,6 +173,7 @@ impl Default for TrackParams {
             swarm: SwarmParams::default(),
             lock_correlation: 0.9,
             min_overlap: 2,
+            acquire_overlap: 4,
             gate_m: 0.25,
             gate_m_per_s: 0.5,
             sigma_locked_m: 0.05,
@@ -203,6 +210,12 @@ impl TrackParams {
             return Err(param("iterations_min", "must be at least 1 and at most iterations_max"));
         }
         self.swarm.check("swarm")?;
+        if self.acquire_overlap < self.min_overlap {
+            return Err(param(
+                "acquire_overlap",
+                format!("must be at least min_overlap ({})", self.min_overlap),
+            ));
+        }
         if !(-1.0..=1.0).contains(&self.lock_correlation) {
             return Err(param(
                 "lock_correlation",
@@ -300,6 +313,12 @@ pub fn lock_check(
         return Some(Miss::Correlation);
     }
     if c.overlap < params.min_overlap {
+        return Some(Miss::Overlap);
+    }
+    // acquiring: never locked, or dead reckoning already worse than the GPS/INS
+    let acquiring =
+        since_lock_s.is_none_or(|t| params.sigma_locked_m.hypot(params.sigma_m_per_s * t) > params.ins_sigma_m);
+    if acquiring && c.overlap < params.acquire_overlap {
         return Some(Miss::Overlap);
     }
     // before the first lock the search box is the only gate
@@ -601,6 +620,14 @@ mod tests {
             overlap: 1,
         };
         assert_eq!(lock_check(&p, few, 0.1, Some(0.0)), Some(Miss::Overlap));
+        // two channels keep a lock but do not acquire one
+        let two = Correlation {
+            value: 0.99,
+            overlap: 2,
+        };
+        assert_eq!(lock_check(&p, two, 0.1, Some(0.0)), None);
+        assert_eq!(lock_check(&p, two, 0.1, None), Some(Miss::Overlap));
+        assert_eq!(lock_check(&p, two, 0.1, Some(10.0)), Some(Miss::Overlap));
         assert_eq!(lock_check(&p, good, 0.3, Some(0.0)), Some(Miss::Gate));
         // the gate widens with the time since the last lock
         assert_eq!(lock_check(&p, good, 0.3, Some(1.0)), None);

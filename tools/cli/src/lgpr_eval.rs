@@ -30,6 +30,8 @@ pub struct LgprEvalArgs {
     pub format: ReportFormat,
     /// Write the figures (PNG) into this directory.
     pub plot_dir: Option<PathBuf>,
+    /// Write each run's evaluated fixes as CSV into this directory.
+    pub samples_dir: Option<PathBuf>,
 }
 
 /// One run's row.
@@ -175,11 +177,50 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
             }
         }
     }
+    if let Some(dir) = &args.samples_dir {
+        for (name, samples) in &all {
+            write_samples(&dir.join(format!("{name}.csv")), samples)?;
+        }
+        writeln!(out, "samples in {}", dir.display())?;
+    }
     if let Some(dir) = &args.plot_dir {
         figures(dir, &all)?;
         writeln!(out, "figures in {}", dir.display())?;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One run's evaluated fixes as CSV, one row per fix.
+fn write_samples(path: &Path, samples: &[Sample]) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    }
+    let file = std::fs::File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+    let mut w = std::io::BufWriter::new(file);
+    let write = |w: &mut std::io::BufWriter<std::fs::File>| -> std::io::Result<()> {
+        writeln!(
+            w,
+            "stamp_ns,step_m,speed_mps,offset_m,lgpr_along_m,lgpr_cross_m,gps_along_m,gps_cross_m,correlation,locked"
+        )?;
+        for s in samples {
+            writeln!(
+                w,
+                "{},{},{},{},{},{},{},{},{},{}",
+                s.stamp_ns,
+                s.weight_m,
+                s.speed_mps,
+                s.offset_m,
+                s.lgpr[0],
+                s.lgpr[1],
+                s.gps[0],
+                s.gps[1],
+                s.correlation,
+                u8::from(s.locked)
+            )?;
+        }
+        w.flush()
+    };
+    write(&mut w).with_context(|| format!("{}: cannot write", path.display()))
 }
 
 /// Figs. 15, 17, 18 and 19 of seed 001 from the runs' samples.

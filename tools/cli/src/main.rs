@@ -201,6 +201,10 @@ enum Command {
         /// Write the figures (PNG) into this directory.
         #[arg(long, value_name = "DIR")]
         plot_dir: Option<PathBuf>,
+        /// Write every evaluated fix of each run (stamp, speed, offset, errors, correlation,
+        /// lock) as DIR/RUN.csv.
+        #[arg(long, value_name = "DIR")]
+        samples_dir: Option<PathBuf>,
     },
     /// The wheel's scale (true ground metres per recorded wheel metre) against ground truth,
     /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
@@ -445,6 +449,7 @@ fn main() -> ExitCode {
             topic,
             format,
             plot_dir,
+            samples_dir,
         } => gprflow_cli::lgpr_eval::lgpr_eval_command(&gprflow_cli::lgpr_eval::LgprEvalArgs {
             runs,
             baseline,
@@ -452,6 +457,7 @@ fn main() -> ExitCode {
             topic,
             format,
             plot_dir,
+            samples_dir,
         }),
         Command::CalibrateWheel {
             recordings,
