@@ -250,6 +250,35 @@ impl EstimateStage {
         }
     }
 
+    /// A ground-plane position measurement (a locked map fix, a GPS/INS position) with its
+    /// 6x6 covariance: the estimate's anchor when `anchor` and none is set yet, else a
+    /// position factor.
+    fn position_fix(
+        &mut self,
+        input: &Input<'_>,
+        pose: &Pose,
+        covariance: &[f64; 36],
+        anchor: bool,
+        what: &str,
+    ) -> Result<(), StageError> {
+        if anchor && !self.origin_seen {
+            let mut origin = *pose;
+            origin.position.z = 0.0;
+            self.origin_seen = self.est.set_origin(pose_from_msg(&origin));
+            tracing::info!(seq = input.seq(), "estimate: {what} anchors the estimate");
+            return Ok(());
+        }
+        let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
+        let p = &pose.position;
+        let added = self.est.map_fix(
+            input.stamp_ns(),
+            Vector2::new(p.x, p.y),
+            [sig(covariance[0]), sig(covariance[7])],
+        );
+        self.accept(input, added)?;
+        Ok(())
+    }
+
     fn publish_state(&mut self, s: &StateOutput, out: &mut Outputs) -> Result<(), StageError> {
         let mut cov = [0.0; 36];
         if let Some(c) = &s.covariance
@@ -464,45 +493,25 @@ impl Stage for EstimateStage {
                     self.unlocked_map_fixes += 1;
                     return Ok(());
                 }
-                if self.anchor_on_map_fix && !self.origin_seen {
-                    let mut anchor = m.world_from_body;
-                    anchor.position.z = 0.0;
-                    self.origin_seen = self.est.set_origin(pose_from_msg(&anchor));
-                    tracing::info!(
-                        seq = input.seq(),
-                        "estimate: the first locked map fix anchors the estimate"
-                    );
-                    return Ok(());
-                }
-                let c = &m.covariance.0;
-                let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
-                let p = &m.world_from_body.position;
-                let added = self
-                    .est
-                    .map_fix(input.stamp_ns(), Vector2::new(p.x, p.y), [sig(c[0]), sig(c[7])]);
-                self.accept(&input, added)?;
+                let anchor = self.anchor_on_map_fix;
+                self.position_fix(
+                    &input,
+                    &m.world_from_body,
+                    &m.covariance.0,
+                    anchor,
+                    "the first locked map fix",
+                )?;
             }
             "gps" => {
                 let m: Odometry = input.decode()?;
-                let pose = &m.pose.pose;
-                if self.anchor_on_gps && !self.origin_seen {
-                    let mut anchor = *pose;
-                    anchor.position.z = 0.0;
-                    self.origin_seen = self.est.set_origin(pose_from_msg(&anchor));
-                    tracing::info!(
-                        seq = input.seq(),
-                        "estimate: the first GPS/INS message anchors the estimate"
-                    );
-                    return Ok(());
-                }
-                let c = &m.pose.covariance.0;
-                let sig = |v: f64| if v.is_finite() && v > 0.0 { v.sqrt() } else { 0.5 };
-                let added = self.est.map_fix(
-                    input.stamp_ns(),
-                    Vector2::new(pose.position.x, pose.position.y),
-                    [sig(c[0]), sig(c[7])],
-                );
-                self.accept(&input, added)?;
+                let anchor = self.anchor_on_gps;
+                self.position_fix(
+                    &input,
+                    &m.pose.pose,
+                    &m.pose.covariance.0,
+                    anchor,
+                    "the first GPS/INS message",
+                )?;
             }
             _ => {}
         }

@@ -186,6 +186,12 @@ impl Default for TrackParams {
 }
 
 impl TrackParams {
+    /// Standard deviation of a pose dead-reckoned for `since_lock_s` since the last lock
+    /// (infinite before the first lock).
+    pub fn dead_reckoned_sigma_m(&self, since_lock_s: Option<f64>) -> f64 {
+        since_lock_s.map_or(f64::INFINITY, |t| self.sigma_locked_m.hypot(self.sigma_m_per_s * t))
+    }
+
     /// Checks every value; keys are relative to the block (`search_min.xy_m`).
     ///
     /// # Errors
@@ -316,8 +322,7 @@ pub fn lock_check(
         return Some(Miss::Overlap);
     }
     // acquiring: never locked, or dead reckoning already worse than the GPS/INS
-    let acquiring =
-        since_lock_s.is_none_or(|t| params.sigma_locked_m.hypot(params.sigma_m_per_s * t) > params.ins_sigma_m);
+    let acquiring = params.dead_reckoned_sigma_m(since_lock_s) > params.ins_sigma_m;
     if acquiring && c.overlap < params.acquire_overlap {
         return Some(Miss::Overlap);
     }
@@ -471,12 +476,7 @@ impl Tracker {
             (found.best, self.params.sigma_locked_m)
         } else {
             self.level = (self.level + step).min(1.0);
-            let t = since_lock.unwrap_or(0.0);
-            let grow = self.params.sigma_m_per_s * t;
-            let sigma = match self.last_lock_ns {
-                Some(_) => self.params.sigma_locked_m.hypot(grow),
-                None => f64::INFINITY,
-            };
+            let sigma = self.params.dead_reckoned_sigma_m(since_lock);
             if sigma > self.params.ins_sigma_m {
                 // dead reckoning is now worse than the GPS/INS itself
                 let mut at = expected;

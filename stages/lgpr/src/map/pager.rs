@@ -56,8 +56,7 @@ pub struct GridPager {
     next: Option<Gridded>,
     requests: SyncSender<[f64; 2]>,
     results: Receiver<Result<Gridded, StoreError>>,
-    pending: bool,
-    /// Centre of the grid requested and not yet switched to.
+    /// Centre of the grid requested and not yet switched to (its grid is in `next` once made).
     next_centre: Option<[f64; 2]>,
     worker: Option<JoinHandle<()>>,
     /// Gridding times, s (for the report).
@@ -72,7 +71,7 @@ impl GridPager {
     /// A pager on `map` with grids of `spec`, each with the window energies of `window_len`
     /// tabulated ([`LocalGrid::prepare_window`]); starts its worker thread.
     pub fn new(map: MapReader, spec: GridSpec, window_len: usize) -> Self {
-        // one request at a time is outstanding (`pending`): two slots never block
+        // one request at a time is outstanding (`next_centre`): two slots never block
         let (req_tx, req_rx) = sync_channel::<[f64; 2]>(2);
         let (res_tx, res_rx) = sync_channel(2);
         let worker_spec = spec.clone();
@@ -100,7 +99,6 @@ impl GridPager {
             next: None,
             requests: req_tx,
             results: res_rx,
-            pending: false,
             next_centre: None,
             worker,
             grid_times_s: Vec::new(),
@@ -118,13 +116,11 @@ impl GridPager {
         self.requests.send(centre).map_err(|_| StoreError::BadColumn {
             what: "the gridding thread has stopped".into(),
         })?;
-        self.pending = true;
         self.next_centre = Some(centre);
         Ok(())
     }
 
     fn accept(&mut self, g: Result<Gridded, StoreError>) -> Result<(), StoreError> {
-        self.pending = false;
         let mut g = g?;
         self.grid_times_s.push(g.took.as_secs_f64());
         self.damage.append(&mut g.damage);
@@ -157,7 +153,8 @@ impl GridPager {
     /// Reading the map failed.
     pub fn update(&mut self, position: [f64; 2], direction: [f64; 2]) -> Result<PagerEvents, StoreError> {
         let mut ev = PagerEvents::default();
-        if self.pending
+        if self.next_centre.is_some()
+            && self.next.is_none()
             && let Ok(g) = self.results.try_recv()
         {
             self.accept(g)?;
