@@ -74,17 +74,23 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
         path(&fixes),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let e = gprflow(&[
-        "lgpr-eval",
-        path(&fixes),
-        "--baseline",
-        path(&map_rec),
-        "--format",
-        "json",
-    ]);
-    assert!(e.status.success(), "{}", stderr(&e));
-    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
-    let r = &rows[0];
+    // `gprflow lgpr-eval` of the run against the mapping pass: its one row
+    let eval = |extra: &[&str]| -> serde_json::Value {
+        let mut args = vec![
+            "lgpr-eval",
+            path(&fixes),
+            "--baseline",
+            path(&map_rec),
+            "--format",
+            "json",
+        ];
+        args.extend_from_slice(extra);
+        let e = gprflow(&args);
+        assert!(e.status.success(), "{}", stderr(&e));
+        let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
+        rows[0].clone()
+    };
+    let r = &eval(&[]);
     let cm = |v: &serde_json::Value| v.as_f64().expect("number") * 100.0;
     let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
     let (gps_cross, lock) = (cm(&r["gps"]["cross_m"]), r["locked_pct"].as_f64().expect("number"));
@@ -98,19 +104,7 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     // the GPS/INS alone is an order of magnitude worse
     assert!(gps_cross > 3.0 * cross, "GPS/INS cross {gps_cross:.1} cm: {r}");
     // the estimator's fusion of the locked fixes with the IMU, the wheel and the GPS/INS
-    let e = gprflow(&[
-        "lgpr-eval",
-        path(&fixes),
-        "--baseline",
-        path(&map_rec),
-        "--topic",
-        "/estimate/state",
-        "--format",
-        "json",
-    ]);
-    assert!(e.status.success(), "{}", stderr(&e));
-    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
-    let f = &rows[0];
+    let f = &eval(&["--topic", "/estimate/state"]);
     let (total, gps_total) = (cm(&f["lgpr"]["total_m"]), cm(&f["gps"]["total_m"]));
     assert!(
         total <= 8.0 && gps_total > 5.0 * total,
