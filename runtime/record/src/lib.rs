@@ -8,15 +8,19 @@
 //! number. Every recording carries a `gprflow` metadata record (version, commit, run,
 //! graph) and the graph file and resolved node parameters as attachments.
 
+mod read;
 mod stages;
 
-pub use stages::{PROMISE_EVERY_NS, Pace, Player, RecordParams, RecordStage, ReplayParams, ReplayStage};
+pub use read::{Extras, Message, Messages, RecordedMessage, Recording, Window};
+
+pub use stages::{
+    PROMISE_EVERY_NS, Pace, Player, RecordParams, RecordStage, ReplayParams, ReplayStage, check_window, seconds_window,
+};
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use serde::Serialize;
@@ -325,165 +329,6 @@ impl Drop for Recorder {
     }
 }
 
-/// One message read from a recording.
-#[derive(Debug, Clone, Copy)]
-pub struct RecordedMessage<'a> {
-    /// Topic as written (`/node/output`).
-    pub topic: &'a str,
-    /// Schema name (`gprflow_msgs/msg/Trace`), empty when the channel has none.
-    pub msg_type: &'a str,
-    /// MCAP sequence.
-    pub sequence: u32,
-    /// Log time (our stamp), ns.
-    pub log_time: u64,
-    /// Publish time, ns.
-    pub publish_time: u64,
-    /// CDR payload.
-    pub data: &'a [u8],
-}
-
-/// A recording read into memory. Files cut off mid-write are read up to the last complete
-/// chunk, and [`Recording::scan`] says where reading stopped.
-#[derive(Debug)]
-pub struct Recording {
-    path: PathBuf,
-    bytes: Vec<u8>,
-}
-
-/// Metadata and attachments of a recording.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Extras {
-    /// Metadata records by name.
-    pub metadata: BTreeMap<String, BTreeMap<String, String>>,
-    /// Attachments: name and bytes.
-    pub attachments: Vec<(String, Vec<u8>)>,
-}
-
-impl Recording {
-    /// Reads `path`.
-    ///
-    /// # Errors
-    /// Missing file, or a file that does not start like an MCAP file.
-    pub fn open(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|source| RecordError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
-        if !bytes.starts_with(mcap::MAGIC) {
-            return Err(RecordError::NotMcap {
-                path: path.to_owned(),
-                what: "missing MCAP magic at the start".to_owned(),
-            });
-        }
-        Ok(Self {
-            path: path.to_owned(),
-            bytes,
-        })
-    }
-
-    /// File path.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
-    /// Visits every message in file order, then returns the extras and, when the file ends
-    /// early (cut off, corrupt), a description of where reading stopped. Every message of
-    /// every complete chunk before that point is visited.
-    pub fn scan(&self, mut visit: impl FnMut(&RecordedMessage<'_>)) -> (Extras, Option<String>) {
-        use mcap::records::Record;
-        let mut extras = Extras::default();
-        let mut channels = mcap::read::ChannelAccumulator::default();
-        let records =
-            match mcap::read::ChunkFlattener::new_with_options(&self.bytes, mcap::read::Options::IgnoreEndMagic.into())
-            {
-                Ok(r) => r,
-                Err(e) => return (extras, Some(e.to_string())),
-            };
-        let mut stopped = None;
-        let mut count = 0u64;
-        for record in records {
-            let record = match record {
-                Ok(r) => r,
-                Err(e) => {
-                    stopped = Some(format!("after {count} messages: {e}"));
-                    break;
-                }
-            };
-            match record {
-                Record::Schema { header, data } => {
-                    if let Err(e) = channels.add_schema(header, data) {
-                        stopped = Some(format!("after {count} messages: schema: {e}"));
-                        break;
-                    }
-                }
-                Record::Channel(ch) => {
-                    if let Err(e) = channels.add_channel(ch) {
-                        stopped = Some(format!("after {count} messages: channel: {e}"));
-                        break;
-                    }
-                }
-                Record::Message { header, data } => {
-                    let Some(ch) = channels.get(header.channel_id) else {
-                        stopped = Some(format!(
-                            "after {count} messages: message on unknown channel {}",
-                            header.channel_id
-                        ));
-                        break;
-                    };
-                    let msg_type = ch.schema.as_ref().map_or("", |s| s.name.as_str());
-                    visit(&RecordedMessage {
-                        topic: &ch.topic,
-                        msg_type,
-                        sequence: header.sequence,
-                        log_time: header.log_time,
-                        publish_time: header.publish_time,
-                        data: &data,
-                    });
-                    count += 1;
-                }
-                Record::Metadata(m) => {
-                    extras.metadata.insert(m.name, m.metadata);
-                }
-                Record::Attachment { header, data, .. } => {
-                    extras.attachments.push((header.name, data.into_owned()));
-                }
-                _ => {}
-            }
-        }
-        if stopped.is_none() && !self.bytes.ends_with(mcap::MAGIC) {
-            stopped = Some(format!(
-                "after {count} messages: the file has no footer (cut off mid-write?)"
-            ));
-        }
-        (extras, stopped)
-    }
-
-    /// Channels (topic, type) in order of first appearance.
-    pub fn topics(&self) -> Vec<(String, String)> {
-        let mut topics: Vec<(String, String)> = Vec::new();
-        // The summary lists every channel without decompressing; fall back to a scan.
-        if let Ok(Some(summary)) = mcap::Summary::read(&self.bytes) {
-            let mut chans: Vec<&Arc<mcap::Channel<'_>>> = summary.channels.values().collect();
-            chans.sort_by_key(|c| c.id);
-            return chans
-                .into_iter()
-                .map(|c| {
-                    (
-                        c.topic.clone(),
-                        c.schema.as_ref().map_or(String::new(), |s| s.name.clone()),
-                    )
-                })
-                .collect();
-        }
-        self.scan(|m| {
-            if !topics.iter().any(|(t, _)| t == m.topic) {
-                topics.push((m.topic.to_owned(), m.msg_type.to_owned()));
-            }
-        });
-        topics
-    }
-}
-
 /// Per-topic figures of a recording.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct TopicSummary {
@@ -574,8 +419,8 @@ pub fn inspect(rec: &Recording) -> Inspection {
         };
     }
     Inspection {
-        path: rec.path.display().to_string(),
-        bytes: rec.bytes.len() as u64,
+        path: rec.path().display().to_string(),
+        bytes: rec.len_bytes(),
         messages: topics.iter().map(|t| t.count).sum(),
         start_ns: topics.iter().map(|t| t.first_ns).min().unwrap_or(0),
         end_ns: topics.iter().map(|t| t.last_ns).max().unwrap_or(0),

@@ -1,8 +1,9 @@
 //! The built-in `record` and `replay` stages.
 
+use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use super::{ChannelId, Recorder, Recording, RunMetadata};
+use super::{ChannelId, Recorder, Recording, RunMetadata, Window};
 use gprflow_bus::glob_matches;
 use gprflow_stage::{
     Input, InputPorts, Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError, report_progress,
@@ -109,6 +110,13 @@ pub struct ReplayParams {
     /// Topics to replay, glob patterns over `node/output` (default all).
     #[serde(default = "default_topics")]
     pub topics: Vec<String>,
+    /// Start this many seconds after the recording's first message (the chunks before it are
+    /// not read).
+    #[serde(default)]
+    pub start_s: Option<f64>,
+    /// End this many seconds after the recording's first message.
+    #[serde(default)]
+    pub end_s: Option<f64>,
 }
 
 fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
@@ -121,21 +129,83 @@ fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
         .collect())
 }
 
-/// A list of encoded messages sent in stamp order at a pace: the part every source stage that
-/// publishes what it read shares (the `replay` stage, the `ingest` stage). As its stamps
-/// advance it promises them on every output, so that a consumer merging an idle output (a
-/// topic with one message at the start) with a busy one never waits for the idle one.
-#[derive(Debug)]
+/// Checks a window of `start_s` .. `end_s` seconds (parameters of the sources that take one).
+///
+/// # Errors
+/// A start or end that is negative or not a number, or an end not after the start.
+pub fn check_window(start_s: Option<f64>, end_s: Option<f64>) -> Result<(), ParamError> {
+    for (key, value) in [("start_s", start_s), ("end_s", end_s)] {
+        if let Some(v) = value
+            && !(v.is_finite() && v >= 0.0)
+        {
+            return Err(ParamError::new(
+                key,
+                format!("must be a number of seconds >= 0, not {v}"),
+            ));
+        }
+    }
+    if let (Some(s), Some(e)) = (start_s, end_s)
+        && e <= s
+    {
+        return Err(ParamError::new(
+            "end_s",
+            format!("must come after start_s ({s} s), not {e} s"),
+        ));
+    }
+    Ok(())
+}
+
+/// The log-time window from `start_s` to `end_s` seconds after the recording's first message
+/// (checked by [`check_window`]), every topic.
+pub fn seconds_window(rec: &Recording, start_s: Option<f64>, end_s: Option<f64>) -> Window {
+    let first = if start_s.is_some() || end_s.is_some() {
+        rec.start_ns().unwrap_or(0)
+    } else {
+        0
+    };
+    let at = |s: f64| first.saturating_add((s * 1e9).round() as u64);
+    Window {
+        topics: None,
+        start_ns: start_s.map(at),
+        end_ns: end_s.map(at),
+    }
+}
+
+/// Encoded messages sent in stamp order at a pace: the part every source stage that publishes
+/// what it read shares (the `replay` stage, the `ingest` stage). It pulls them one at a time
+/// from its source (a recording streamed from disk, or a list), so it holds one message at a
+/// time. As its stamps advance it promises them on every output, so that a consumer merging an
+/// idle output (a topic with one message at the start) with a busy one never waits for the idle
+/// one.
 pub struct Player {
     /// (output index, stamp ns, CDR payload), in stamp order.
-    messages: Vec<(usize, i64, Vec<u8>)>,
-    next: usize,
+    source: Box<dyn Iterator<Item = (usize, i64, Vec<u8>)> + Send>,
+    /// The message waiting for its time (`recorded` pace).
+    waiting: Option<(usize, i64, Vec<u8>)>,
+    /// Messages in all, when known (for progress).
+    total: Option<usize>,
+    sent: usize,
     pace: Pace,
     speed: f64,
     started: Instant,
+    first_ns: Option<i64>,
+    last_ns: i64,
+    /// Messages whose stamp came before the one sent before them.
+    out_of_order: u64,
     last_progress: Instant,
     /// Stamp last promised on every output.
     promised_ns: i64,
+}
+
+impl std::fmt::Debug for Player {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Player")
+            .field("total", &self.total)
+            .field("sent", &self.sent)
+            .field("pace", &self.pace)
+            .field("speed", &self.speed)
+            .finish_non_exhaustive()
+    }
 }
 
 /// How far a source's stamps advance before it promises them on every output (sensor time).
@@ -145,25 +215,41 @@ impl Player {
     /// A player of `messages` (output index, stamp ns, payload), which must be in stamp order;
     /// `speed` scales the recorded pace.
     pub fn new(messages: Vec<(usize, i64, Vec<u8>)>, pace: Pace, speed: f64) -> Self {
+        let total = messages.len();
+        Self::streaming(messages.into_iter(), Some(total), pace, speed)
+    }
+
+    /// A player pulling its messages (output index, stamp ns, payload; in stamp order) from
+    /// `source` as it sends them; `total` is their number when known.
+    pub fn streaming(
+        source: impl Iterator<Item = (usize, i64, Vec<u8>)> + Send + 'static,
+        total: Option<usize>,
+        pace: Pace,
+        speed: f64,
+    ) -> Self {
         Self {
-            messages,
-            next: 0,
+            source: Box::new(source),
+            waiting: None,
+            total,
+            sent: 0,
             pace,
             speed,
             started: Instant::now(),
+            first_ns: None,
+            last_ns: i64::MIN,
+            out_of_order: 0,
             last_progress: Instant::now(),
             promised_ns: i64::MIN,
         }
     }
 
-    /// Messages to send.
-    pub fn len(&self) -> usize {
-        self.messages.len()
+    /// Messages sent so far.
+    pub fn sent(&self) -> usize {
+        self.sent
     }
 
-    /// True when there is nothing to send.
-    pub fn is_empty(&self) -> bool {
-        self.messages.is_empty()
+    fn progress(&self) {
+        report_progress(self.sent, self.total.unwrap_or(0).max(self.sent));
     }
 
     /// Sends the next message (or waits for its time at `recorded` pace); for
@@ -172,33 +258,46 @@ impl Player {
     /// # Errors
     /// Bus errors.
     pub fn produce(&mut self, out: &mut Outputs) -> Result<Produce, StageError> {
-        let Some((index, stamp, data)) = self.messages.get(self.next) else {
-            report_progress(self.next, self.messages.len());
+        let Some((index, stamp, data)) = self.waiting.take().or_else(|| self.source.next()) else {
+            self.progress();
+            if self.out_of_order > 0 {
+                tracing::warn!(
+                    "{} of {} messages came with a stamp before the one sent before them (a file read in file order)",
+                    self.out_of_order,
+                    self.sent
+                );
+            }
             return Ok(Produce::Done);
         };
+        let first = *self.first_ns.get_or_insert(stamp);
         if self.pace == Pace::Recorded {
-            let first = self.messages.first().map_or(*stamp, |m| m.1);
             let offset = Duration::from_secs_f64((stamp - first).max(0) as f64 * 1e-9 / self.speed);
             if let Some(wait) = offset.checked_sub(self.started.elapsed()) {
                 std::thread::sleep(wait.min(Duration::from_millis(100)));
+                self.waiting = Some((index, stamp, data));
                 return Ok(Produce::More);
             }
         }
-        out.send_bytes(*index, *stamp, data)?;
-        if *stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
-            out.promise(*stamp)?;
-            self.promised_ns = *stamp;
+        out.send_bytes(index, stamp, &data)?;
+        if stamp < self.last_ns {
+            self.out_of_order += 1;
         }
-        self.next += 1;
+        self.last_ns = stamp;
+        if stamp >= self.promised_ns.saturating_add(PROMISE_EVERY_NS) {
+            out.promise(stamp)?;
+            self.promised_ns = stamp;
+        }
+        self.sent += 1;
         if self.last_progress.elapsed() > Duration::from_millis(200) {
             self.last_progress = Instant::now();
-            report_progress(self.next, self.messages.len());
+            self.progress();
         }
         Ok(Produce::More)
     }
 }
 
-/// Publishes the messages of a recording, each on the output named after its topic.
+/// Publishes the messages of a recording, each on the output named after its topic, streamed
+/// from the file.
 #[derive(Debug)]
 pub struct ReplayStage {
     player: Player,
@@ -214,27 +313,32 @@ impl Stage for ReplayStage {
     }
 
     fn check_params(params: &Self::Params) -> Result<(), ParamError> {
-        gprflow_stage::params::positive("speed", params.speed)
+        gprflow_stage::params::positive("speed", params.speed)?;
+        check_window(params.start_s, params.end_s)
     }
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
         let rec = Recording::open(params.path.as_ref()).map_err(StageError::failed)?;
-        let mut messages = Vec::new();
-        let (_, stopped) = rec.scan(|m| {
-            let name = m.topic.trim_start_matches('/');
-            if let Some(i) = ports.outputs().iter().position(|o| o.name == name) {
-                messages.push((i, i64::try_from(m.log_time).unwrap_or(i64::MAX), m.data.to_vec()));
-            }
+        let mut window = seconds_window(&rec, params.start_s, params.end_s);
+        // recorded topic -> output index
+        let outputs: HashMap<String, usize> = rec
+            .topics()
+            .into_iter()
+            .filter_map(|(topic, _)| {
+                let name = topic.trim_start_matches('/');
+                let i = ports.outputs().iter().position(|o| o.name == name)?;
+                Some((topic, i))
+            })
+            .collect();
+        window.topics = Some(outputs.keys().cloned().collect());
+        let messages = rec.messages(&window).map_err(StageError::failed)?;
+        let total = messages.total().and_then(|t| usize::try_from(t).ok());
+        let source = messages.filter_map(move |m| {
+            let i = *outputs.get(&*m.topic)?;
+            Some((i, i64::try_from(m.log_time).unwrap_or(i64::MAX), m.data))
         });
-        if let Some(at) = stopped {
-            tracing::warn!(
-                "{}: read stopped early ({at}); replaying the {} messages before it",
-                params.path,
-                messages.len()
-            );
-        }
         Ok(Self {
-            player: Player::new(messages, params.pace, params.speed),
+            player: Player::streaming(source, total, params.pace, params.speed),
         })
     }
 
