@@ -3,13 +3,15 @@
 //! order. The `ingest` stage plays what it returns; `gprflow convert` writes it to MCAP.
 
 use std::borrow::Cow;
-use std::path::Path;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use gprflow_msg::{
     Header, Imu, Message, Odometry, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode,
     encode,
 };
-use gprflow_record::Recording;
+use gprflow_record::{Recording, Window};
 
 use crate::cmu::CmuSequence;
 use crate::error::{Error, Result};
@@ -398,10 +400,7 @@ fn mcap_topics(rec: &Recording, map: &TopicMap) -> Vec<(Port, String)> {
 }
 
 fn load_mcap(path: &Path, map: &TopicMap) -> Result<Loaded> {
-    let rec = Recording::open(path).map_err(|e| Error::Recording {
-        path: path.into(),
-        message: e.to_string(),
-    })?;
+    let rec = open_mcap(path)?;
     let wanted = mcap_topics(&rec, map);
     let mut loaded = Loaded::default();
     let (_, stopped) = rec.scan(|m| {
@@ -416,15 +415,108 @@ fn load_mcap(path: &Path, map: &TopicMap) -> Result<Loaded> {
             path.display()
         ));
     }
-    loaded.summary = format!(
+    loaded.summary = mcap_summary(&wanted);
+    Ok(loaded)
+}
+
+fn open_mcap(path: &Path) -> Result<Recording> {
+    Recording::open(path).map_err(|e| Error::Recording {
+        path: path.into(),
+        message: e.to_string(),
+    })
+}
+
+fn mcap_summary(wanted: &[(Port, String)]) -> String {
+    format!(
         "MCAP: {}",
         wanted
             .iter()
             .map(|(p, t)| format!("{} <- {t}", p.name()))
             .collect::<Vec<_>>()
             .join(", ")
-    );
-    Ok(loaded)
+    )
+}
+
+/// An MCAP source streamed from disk: what [`load`] gives for it, one message at a time, so
+/// memory does not grow with the recording. Messages come in stamp order within the window
+/// (see [`gprflow_record::Recording::messages`]); wheel messages are scaled as they pass, and
+/// one that does not decode is left out with a warning naming the file and stamp.
+pub struct McapStream {
+    messages: gprflow_record::Messages,
+    ports: HashMap<Arc<str>, Port>,
+    wheel_scale: f64,
+    path: PathBuf,
+    /// What was read, for logs.
+    pub summary: String,
+}
+
+impl std::fmt::Debug for McapStream {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("McapStream")
+            .field("path", &self.path)
+            .field("summary", &self.summary)
+            .finish_non_exhaustive()
+    }
+}
+
+impl McapStream {
+    /// Opens `path` and picks the topic behind each port; `window` (every topic when its
+    /// `topics` is `None`) narrows it to those topics and a time span.
+    ///
+    /// # Errors
+    /// [`Error::Recording`] for a file that cannot be opened.
+    pub fn open(path: &Path, options: &LoadOptions, mut window: Window) -> Result<Self> {
+        let rec = open_mcap(path)?;
+        let wanted = mcap_topics(&rec, &options.topics);
+        window.topics = Some(wanted.iter().map(|(_, t)| t.clone()).collect());
+        let messages = rec.messages(&window).map_err(|e| Error::Recording {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+        Ok(Self {
+            messages,
+            ports: wanted.iter().map(|(p, t)| (Arc::from(t.as_str()), *p)).collect(),
+            wheel_scale: options.wheel_scale,
+            path: path.into(),
+            summary: mcap_summary(&wanted),
+        })
+    }
+
+    /// Messages on the chosen topics in all (whole-time windows of indexed files only).
+    pub fn total(&self) -> Option<usize> {
+        self.messages.total().and_then(|t| usize::try_from(t).ok())
+    }
+}
+
+impl Iterator for McapStream {
+    type Item = (Port, i64, Vec<u8>);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let m = self.messages.next()?;
+            let Some(&port) = self.ports.get(&m.topic) else {
+                continue;
+            };
+            let stamp = i64::try_from(m.log_time).unwrap_or(i64::MAX);
+            if port == Port::Wheel && self.wheel_scale != 1.0 {
+                match decode::<WheelOdometry>(&m.data) {
+                    Ok(mut w) => {
+                        w.distance_m *= self.wheel_scale;
+                        w.speed_mps *= self.wheel_scale;
+                        return Some((port, stamp, encode(&w)));
+                    }
+                    Err(e) => {
+                        tracing::warn!(
+                            "{}: wheel message at {stamp} ns: cannot be read to apply wheel_scale ({e}); left out",
+                            self.path.display()
+                        );
+                        continue;
+                    }
+                }
+            }
+            return Some((port, stamp, m.data));
+        }
+    }
 }
 
 #[cfg(test)]

@@ -5,12 +5,12 @@
 
 use std::path::Path;
 
-use gprflow_record::{Pace, Player};
+use gprflow_record::{Pace, Player, Recording, check_window, seconds_window};
 use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::format::SourceFormat;
-use crate::load::{LoadOptions, Port, TopicMap, load};
+use crate::load::{LoadOptions, McapStream, Port, TopicMap, load};
 
 /// Parameters of the `ingest` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -44,6 +44,13 @@ pub struct IngestParams {
     /// ground truth). Default 1: the source's own distances.
     #[serde(default = "one")]
     pub wheel_scale: f64,
+    /// Start this many seconds after the recording's first message (default: at it). An MCAP
+    /// source seeks there through its chunk index and reads nothing before it.
+    #[serde(default)]
+    pub start_s: Option<f64>,
+    /// Stop this many seconds after the recording's first message (default: at its end).
+    #[serde(default)]
+    pub end_s: Option<f64>,
 }
 
 fn one() -> f64 {
@@ -88,12 +95,30 @@ impl Stage for IngestStage {
     fn check_params(params: &Self::Params) -> Result<(), ParamError> {
         positive("speed", params.speed)?;
         positive("trace_interval_s", params.trace_interval_s)?;
-        positive("wheel_scale", params.wheel_scale)
+        positive("wheel_scale", params.wheel_scale)?;
+        check_window(params.start_s, params.end_s)
     }
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        let loaded =
-            load(Path::new(&params.source), params.format, &params.load_options()).map_err(StageError::failed)?;
+        // port order = output order
+        debug_assert!(ports.outputs().iter().zip(Port::ALL).all(|(o, p)| o.name == p.name()));
+        let path = Path::new(&params.source);
+        let options = params.load_options();
+        let format = params.format.resolve(path).map_err(StageError::failed)?;
+        if matches!(format, SourceFormat::Mcap | SourceFormat::Auto) {
+            // streamed from disk: memory does not grow with the recording
+            let rec = Recording::open(path).map_err(StageError::failed)?;
+            let window = seconds_window(&rec, params.start_s, params.end_s);
+            let stream = McapStream::open(path, &options, window).map_err(StageError::failed)?;
+            tracing::info!("ingest: {}: {}", params.source, stream.summary);
+            let total = stream.total();
+            let source = stream.map(|(port, stamp, data)| (port as usize, stamp, data));
+            return Ok(Self {
+                player: Player::streaming(Box::new(source), total, params.pace, params.speed),
+            });
+        }
+        // The other formats are read whole (their readers take the file at once).
+        let loaded = load(path, format, &options).map_err(StageError::failed)?;
         tracing::info!("ingest: {}: {}", params.source, loaded.summary);
         for d in loaded.dropped.iter().take(20) {
             tracing::warn!("ingest: skipped {d}");
@@ -101,11 +126,13 @@ impl Stage for IngestStage {
         if loaded.dropped.len() > 20 {
             tracing::warn!("ingest: ... {} records skipped in all", loaded.dropped.len());
         }
-        // port order = output order
-        debug_assert!(ports.outputs().iter().zip(Port::ALL).all(|(o, p)| o.name == p.name()));
+        let first = loaded.messages.first().map_or(0, |m| m.1);
+        let at = |s: f64| first.saturating_add((s * 1e9).round() as i64);
+        let (start, end) = (params.start_s.map(at), params.end_s.map(at));
         let messages = loaded
             .messages
             .into_iter()
+            .filter(|m| start.is_none_or(|s| m.1 >= s) && end.is_none_or(|e| m.1 < e))
             .map(|(port, stamp, data)| (port as usize, stamp, data))
             .collect();
         Ok(Self {
