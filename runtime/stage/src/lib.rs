@@ -16,7 +16,7 @@ pub use drops::Drops;
 pub use gprflow_params as params;
 pub use runtime::{
     Input, InputBinding, InputId, NodeSpec, Output, OutputBinding, Outputs, Ports, Produce, RunReport, StageError,
-    bind_signals, run_node,
+    bind_signals, process_usage, run_node,
 };
 pub use spec::{InputPorts, InputSpec, ParamError, PortSpec, StageCatalog, StageInfo, parse_params};
 
@@ -29,6 +29,18 @@ pub const PROGRESS_TAG: &str = "@gprflow-progress";
 /// Reports progress (`done` of `total` units) to the launcher, which shows it as a bar.
 pub fn report_progress(done: usize, total: usize) {
     eprintln!("{PROGRESS_TAG} {done} {total}");
+}
+
+/// Prefix of the stderr line by which a stage process hands its [`RunReport`] to the
+/// launcher at its end: `TAG {json}`.
+pub const REPORT_TAG: &str = "@gprflow-report";
+
+/// Hands `report` to the launcher that started this process (one stderr line).
+pub fn hand_report(report: &RunReport) {
+    match serde_json::to_string(report) {
+        Ok(json) => eprintln!("{REPORT_TAG} {json}"),
+        Err(e) => tracing::warn!("cannot encode the run report: {e}"),
+    }
 }
 
 /// A processing stage. Algorithms live in plain functions; a `Stage` only moves messages.

@@ -355,7 +355,7 @@ impl Outputs {
 }
 
 /// What a node did, reported at exit.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct RunReport {
     /// Node name.
     pub node: String,
@@ -371,8 +371,27 @@ pub struct RunReport {
     pub decode_errors: u64,
     /// Wall time, seconds.
     pub wall_s: f64,
+    /// CPU time of the process (user + system), seconds.
+    #[serde(default)]
+    pub cpu_s: f64,
+    /// Peak resident set size of the process, bytes.
+    #[serde(default)]
+    pub peak_rss_bytes: u64,
     /// Stopped by a signal before the end of its inputs.
     pub interrupted: bool,
+}
+
+/// CPU time (user + system, s) and peak resident set size (bytes) of this process so far;
+/// zeros where the system does not say.
+pub fn process_usage() -> (f64, u64) {
+    use nix::sys::resource::{UsageWho, getrusage};
+    let Ok(u) = getrusage(UsageWho::RUSAGE_SELF) else {
+        return (0.0, 0);
+    };
+    let secs = |t: nix::sys::time::TimeVal| t.tv_sec() as f64 + t.tv_usec() as f64 * 1e-6;
+    // ru_maxrss is in KiB on Linux
+    let rss = u64::try_from(u.max_rss()).unwrap_or(0).saturating_mul(1024);
+    (secs(u.user_time()) + secs(u.system_time()), rss)
 }
 
 /// Registers SIGINT and SIGTERM: the returned flag turns true on either.
@@ -628,6 +647,7 @@ pub fn run_node<S: Stage>(
         }
     }
 
+    let (cpu_s, peak_rss_bytes) = process_usage();
     let report = RunReport {
         node: spec.node.clone(),
         received,
@@ -640,6 +660,8 @@ pub fn run_node<S: Stage>(
         ],
         decode_errors,
         wall_s: started.elapsed().as_secs_f64(),
+        cpu_s,
+        peak_rss_bytes,
         interrupted,
     };
     tracing::info!(
@@ -652,6 +674,8 @@ pub fn run_node<S: Stage>(
         callback_p99_us = report.callback_us[1],
         callback_max_us = report.callback_us[2],
         wall_s = format!("{:.3}", report.wall_s),
+        cpu_s = format!("{:.3}", report.cpu_s),
+        peak_rss_mib = report.peak_rss_bytes >> 20,
         interrupted,
         "stage finished"
     );

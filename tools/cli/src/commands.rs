@@ -28,6 +28,8 @@ pub struct LaunchArgs {
     pub buffer: usize,
     /// Plan only.
     pub dry_run: bool,
+    /// Write the processes' end-of-run reports here (JSON).
+    pub report: Option<PathBuf>,
     /// Log filter, handed on to the stages.
     pub log: String,
 }
@@ -121,6 +123,9 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
             eprintln!("error: node `{}` ended with {}", n.node, n.describe());
         }
     }
+    if let Some(path) = &args.report {
+        write_run_report(path, &graph.name, &report)?;
+    }
     if !report.cleaned_up.is_empty() {
         eprintln!(
             "removed {} stale shared-memory resources of run {}",
@@ -147,6 +152,31 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     }
 }
 
+/// Writes what every process of a run reported at its end, and the run's wall time, to
+/// `path` (JSON).
+fn write_run_report(path: &Path, graph: &str, report: &launch::LaunchReport) -> Result<()> {
+    let nodes: Vec<serde_json::Value> = report
+        .nodes
+        .iter()
+        .map(|n| {
+            serde_json::json!({
+                "node": n.node,
+                "ended": n.describe(),
+                "report": n.report,
+            })
+        })
+        .collect();
+    let json = serde_json::json!({
+        "graph": graph,
+        "run_id": report.run_id,
+        "succeeded": report.succeeded(),
+        "wall_s": report.wall.as_secs_f64(),
+        "nodes": nodes,
+    });
+    std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
 /// `gprflow stage`.
 ///
 /// # Errors
@@ -156,7 +186,8 @@ pub fn stage(kind: &str, spec_file: &Path) -> Result<ExitCode> {
     let spec: NodeSpec =
         serde_json::from_str(&text).with_context(|| format!("{}: not a node spec", spec_file.display()))?;
     let stop = bind_signals().context("cannot install signal handlers")?;
-    crate::run_stage(kind, &spec, &stop).with_context(|| format!("node `{}` ({kind})", spec.node))?;
+    let report = crate::run_stage(kind, &spec, &stop).with_context(|| format!("node `{}` ({kind})", spec.node))?;
+    gprflow::stage::hand_report(&report);
     Ok(ExitCode::SUCCESS)
 }
 

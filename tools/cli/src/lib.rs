@@ -97,6 +97,7 @@ pub fn run_stage(kind: &str, spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<
     if kind == gprflow::bridge::BRIDGE_STAGE {
         let started = std::time::Instant::now();
         let routes = gprflow::bridge::run_bridge(spec, stop)?;
+        let (cpu_s, peak_rss_bytes) = gprflow::stage::process_usage();
         return Ok(RunReport {
             node: spec.node.clone(),
             received: Vec::new(),
@@ -105,6 +106,8 @@ pub fn run_stage(kind: &str, spec: &NodeSpec, stop: &Arc<AtomicBool>) -> Result<
             callback_us: [0; 3],
             decode_errors: 0,
             wall_s: started.elapsed().as_secs_f64(),
+            cpu_s,
+            peak_rss_bytes,
             interrupted: false,
         });
     }

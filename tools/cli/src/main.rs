@@ -74,6 +74,10 @@ enum Command {
         /// Check the graph and print the plan without starting anything.
         #[arg(long)]
         dry_run: bool,
+        /// Write what every process reported at its end (messages, callback p50/p99, CPU
+        /// time, peak RSS) and the run's wall time to this JSON file.
+        #[arg(long, value_name = "FILE")]
+        report: Option<PathBuf>,
     },
     /// Run one stage as this process (the launcher uses it).
     ///
@@ -404,6 +408,7 @@ fn main() -> ExitCode {
             remote_timeout_s,
             buffer,
             dry_run,
+            report,
         } => commands::launch(&commands::LaunchArgs {
             graph,
             set,
@@ -412,6 +417,7 @@ fn main() -> ExitCode {
             remote_timeout_s,
             buffer,
             dry_run,
+            report,
             log: cli.log.clone(),
         }),
         Command::Stage { kind, spec } => commands::stage(&kind, &spec),

@@ -11,7 +11,7 @@ use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use gprflow_stage::{NodeSpec, PROGRESS_TAG};
+use gprflow_stage::{NodeSpec, PROGRESS_TAG, REPORT_TAG, RunReport};
 
 use super::{LaunchError, LaunchOptions, POLL, Plan, STDERR_TAIL_LINES, cleanup_run};
 
@@ -62,7 +62,7 @@ pub trait LaunchObserver {
 }
 
 /// How one process ended.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct NodeOutcome {
     /// Node.
     pub node: String,
@@ -74,6 +74,9 @@ pub struct NodeOutcome {
     pub stderr_tail: Vec<String>,
     /// Stopped by the launcher (after another failure or an interrupt).
     pub stopped_by_launcher: bool,
+    /// What the stage reported at its end (counts, latency, CPU time, peak RSS), when it
+    /// finished its run and reported.
+    pub report: Option<RunReport>,
 }
 
 impl NodeOutcome {
@@ -121,6 +124,7 @@ struct Running {
     node: String,
     child: Child,
     tail: Arc<Mutex<VecDeque<String>>>,
+    report: Arc<Mutex<Option<RunReport>>>,
     reader: Option<std::thread::JoinHandle<()>>,
     status: Option<ExitStatus>,
     stopped_by_launcher: bool,
@@ -168,11 +172,12 @@ fn spawn(
     };
     let mut child = cmd.spawn().map_err(|source| LaunchError::Io { what, source })?;
     let tail = Arc::new(Mutex::new(VecDeque::with_capacity(STDERR_TAIL_LINES)));
+    let report = Arc::new(Mutex::new(None));
     let reader = child.stderr.take().map(|stderr| {
-        let tail = tail.clone();
+        let (tail, report) = (tail.clone(), report.clone());
         std::thread::Builder::new()
             .name(format!("stderr-{}", spec.node))
-            .spawn(move || forward_stderr(stderr, index, &tail, &lines))
+            .spawn(move || forward_stderr(stderr, index, &tail, &report, &lines))
     });
     let reader = match reader {
         Some(Ok(handle)) => Some(handle),
@@ -188,6 +193,7 @@ fn spawn(
         node: spec.node.clone(),
         child,
         tail,
+        report,
         reader,
         status: None,
         stopped_by_launcher: false,
@@ -198,10 +204,18 @@ fn forward_stderr(
     stderr: std::process::ChildStderr,
     index: usize,
     tail: &Mutex<VecDeque<String>>,
+    report: &Mutex<Option<RunReport>>,
     lines: &SyncSender<Line>,
 ) {
     for line in BufReader::new(stderr).lines() {
         let Ok(line) = line else { break };
+        if let Some(rest) = line.strip_prefix(REPORT_TAG) {
+            match serde_json::from_str::<RunReport>(rest.trim()) {
+                Ok(r) => *report.lock().unwrap_or_else(PoisonError::into_inner) = Some(r),
+                Err(e) => tracing::warn!("a stage's end-of-run report does not read ({e}): {rest}"),
+            }
+            continue;
+        }
         if let Some(rest) = line.strip_prefix(PROGRESS_TAG) {
             let mut nums = rest.split_whitespace().filter_map(|n| n.parse::<u64>().ok());
             if let (Some(done), Some(total)) = (nums.next(), nums.next()) {
@@ -371,6 +385,7 @@ pub fn launch(
                     .cloned()
                     .collect(),
                 stopped_by_launcher: r.stopped_by_launcher,
+                report: r.report.lock().unwrap_or_else(PoisonError::into_inner).take(),
             })
             .collect(),
         interrupted,
