@@ -4,6 +4,8 @@
 
 use std::path::Path;
 
+use gprflow::record::Recording;
+
 use crate::common::{GPRFLOW, gprflow, repo, stderr};
 use crate::{payloads, record_toy};
 
@@ -39,6 +41,65 @@ fn toy_graph_is_deterministic_and_replays_identically() {
     let pc = payloads(&c);
     assert_eq!(pc["/replay/gen/trace"], pa["/gen/trace"]);
     assert_eq!(pc["/gain/trace"], pa["/gain/trace"]);
+}
+
+#[test]
+fn a_replay_window_plays_exactly_its_span_and_every_process_reports_its_usage() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let source = dir.path().join("source.mcap");
+    record_toy(500, &source);
+    // what a window of 1.0 .. 2.5 s after the first message holds
+    let rec = Recording::open(&source).expect("open");
+    let mut stamps = Vec::new();
+    let (_, stopped) = rec.scan(|m| {
+        if m.topic == "/gen/trace" {
+            stamps.push((m.log_time, m.data.to_vec()));
+        }
+    });
+    assert_eq!(stopped, None);
+    let first = stamps.iter().map(|s| s.0).min().expect("messages");
+    let want: Vec<Vec<u8>> = stamps
+        .iter()
+        .filter(|(t, _)| *t >= first + 1_000_000_000 && *t < first + 2_500_000_000)
+        .map(|(_, d)| d.clone())
+        .collect();
+    assert_eq!(want.len(), 150, "the toy source sends at 100 Hz");
+
+    let graph = dir.path().join("window.yaml");
+    std::fs::write(
+        &graph,
+        format!(
+            "name: window\nnodes:\n  replay: {{ stage: replay, params: {{ path: {:?}, topics: [\"gen/*\"], start_s: 1.0, end_s: 2.5 }} }}\n  gain: {{ stage: toy_gain, inputs: {{ trace: replay/gen/trace }}, params: {{ gain: 0.5 }} }}\nrecord: {{ topics: [\"*\"] }}\n",
+            source.display().to_string()
+        ),
+    )
+    .expect("write graph");
+    let out = dir.path().join("out.mcap");
+    let report = dir.path().join("report.json");
+    let o = gprflow(&[
+        "launch",
+        graph.to_str().expect("utf8"),
+        "--record",
+        out.to_str().expect("utf8"),
+        "--report",
+        report.to_str().expect("utf8"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(payloads(&out)["/replay/gen/trace"], want);
+
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).expect("report written")).expect("json");
+    assert_eq!(report["succeeded"], true);
+    assert!(report["wall_s"].as_f64().is_some_and(|w| w > 0.0));
+    let nodes = report["nodes"].as_array().expect("nodes");
+    assert_eq!(nodes.len(), 3, "replay, gain and the recorder: {report}");
+    for n in nodes {
+        let r = &n["report"];
+        assert!(r["cpu_s"].as_f64().is_some_and(|c| c > 0.0), "{n}");
+        assert!(r["peak_rss_bytes"].as_u64().is_some_and(|b| b > 1 << 20), "{n}");
+    }
+    let replay = nodes.iter().find(|n| n["node"] == "replay").expect("replay node");
+    assert_eq!(replay["report"]["sent"][0][1], 150, "{replay}");
 }
 
 #[test]
