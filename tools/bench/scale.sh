@@ -1,0 +1,74 @@
+#!/usr/bin/env bash
+# Throughput and memory at scale: shipped graphs replay long simulated recordings as fast as
+# they go. For each run: the real-time factor (sensor time / wall time), and for every process
+# its share of the run's CPU time, its callback p50/p99 and its peak RSS (from the reports the
+# stages hand to `gprflow launch --report`). Recordings of 5, 20 and 60 minutes of sensor time
+# are made on demand by the simulator (basement world; `long` is its 20.9-minute run, `hour`
+# its 62.7-minute run, the 5-minute one is `long` cut with --duration).
+#
+# usage: tools/bench/scale.sh [GRAPH:MINUTES ...]
+#   default: odometry:5 odometry:20 odometry:60 localize:5 localize:20 slam:5 slam:20
+#   GRAPH is a file of graphs/ (odometry, localize, slam); MINUTES is 5, 20 or 60.
+# Results: out/bench/scale/{GRAPH}-{MINUTES}min.json (launch reports) and table.md.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+out=out/bench/scale
+export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target}
+gprflow="$CARGO_TARGET_DIR/release/gprflow"
+runs=("$@")
+if [ ${#runs[@]} -eq 0 ]; then
+    runs=(odometry:5 odometry:20 odometry:60 localize:5 localize:20 slam:5 slam:20)
+fi
+mkdir -p "$out"
+cargo build -q --release -p gprflow-cli
+
+recording() {
+    local minutes=$1 file="$out/basement-${1}min.mcap"
+    if [ ! -f "$file" ]; then
+        case $minutes in
+            5) "$gprflow" sim tools/sim/scenarios/basement.yaml --run long --duration 300 -o "$file.part" --json > "$file.json" ;;
+            20) "$gprflow" sim tools/sim/scenarios/basement.yaml --run long -o "$file.part" --json > "$file.json" ;;
+            60) "$gprflow" sim tools/sim/scenarios/basement.yaml --run hour -o "$file.part" --json > "$file.json" ;;
+            *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
+        esac
+        mv "$file.part" "$file"
+    fi
+    echo "$file"
+}
+
+for run in "${runs[@]}"; do
+    graph=${run%%:*}
+    minutes=${run##*:}
+    rec=$(recording "$minutes")
+    echo "== $graph on $rec" >&2
+    "$gprflow" launch "graphs/$graph.yaml" --set "recording=$rec" --log warn \
+        --report "$out/$graph-${minutes}min.json" 2> "$out/$graph-${minutes}min.log" \
+        || { echo "$graph on $rec failed: see $out/$graph-${minutes}min.log" >&2; exit 1; }
+done
+
+python3 - "$out" "${runs[@]}" <<'PY' | tee "$out/table.md"
+import json, os, sys
+out, runs = sys.argv[1], sys.argv[2:]
+print("| graph | sensor min | wall s | x real time | process | CPU share | p50 us | p99 us | peak RSS MiB |")
+print("|---|---:|---:|---:|---|---:|---:|---:|---:|")
+for run in runs:
+    graph, minutes = run.split(":")
+    rep = json.load(open(f"{out}/{graph}-{minutes}min.json"))
+    sim = json.load(open(f"{out}/basement-{minutes}min.mcap.json"))
+    sensor_s = sim["duration_s"]
+    nodes = [n for n in rep["nodes"] if n["report"]]
+    cpu = sum(n["report"]["cpu_s"] for n in nodes) or 1.0
+    first = True
+    for n in nodes:
+        r = n["report"]
+        lead = (f"| {graph} | {sensor_s / 60:.1f} | {rep['wall_s']:.1f} | {sensor_s / rep['wall_s']:.1f} "
+                if first else "| | | | ")
+        first = False
+        print(f"{lead}| {n['node']} | {100 * r['cpu_s'] / cpu:.0f}% | {r['callback_us'][0]} | "
+              f"{r['callback_us'][1]} | {r['peak_rss_bytes'] / 2**20:.0f} |")
+    missing = [n["node"] for n in rep["nodes"] if not n["report"]]
+    if missing:
+        print(f"| | | | | no report: {', '.join(missing)} | | | | |")
+    size = os.path.getsize(f"{out}/basement-{minutes}min.mcap")
+    print(f"| | | | | (recording: {size / 2**20:.0f} MiB) | | | | |")
+PY
