@@ -75,6 +75,9 @@ pub enum Error {
         /// What is wrong and what was given.
         message: String,
     },
+    /// The temporary file of the references' pixels (see `closer::store`).
+    #[error("register: the references' spill file: {0}")]
+    Spill(String),
     /// A file cannot be read.
     #[error("{}: {source}", path.display())]
     Io {

@@ -80,6 +80,12 @@ pub trait Matcher: std::fmt::Debug + Send {
         false
     }
 
+    /// Whether [`Matcher::assess`] reads a reference's pixels (a reference kept for a method
+    /// that does not keeps only what [`Matcher::prepare`] made of them).
+    fn reference_needs_pixels(&self) -> bool {
+        true
+    }
+
     /// Readies a submap for matching, as a query with loop candidates or as it is kept as a
     /// reference; called for each, at most once doing work.
     ///
@@ -175,6 +181,11 @@ impl Matcher for Learned {
         Method::Learned
     }
 
+    /// A reference is matched on the features encoded when it was kept.
+    fn reference_needs_pixels(&self) -> bool {
+        false
+    }
+
     fn sigma_m(&self) -> f64 {
         self.model.head.sigma_m
     }
@@ -256,6 +267,10 @@ impl Matcher for Oracle {
         Method::Oracle
     }
 
+    fn reference_needs_pixels(&self) -> bool {
+        false
+    }
+
     fn sigma_m(&self) -> f64 {
         0.02
     }
@@ -294,6 +309,10 @@ pub struct Zeroth {
 impl Matcher for Zeroth {
     fn method(&self) -> Method {
         Method::Zeroth
+    }
+
+    fn reference_needs_pixels(&self) -> bool {
+        false
     }
 
     fn sigma_m(&self) -> f64 {

@@ -17,6 +17,7 @@
 //! puts into a shift.
 
 pub mod matcher;
+mod store;
 
 use std::collections::VecDeque;
 
@@ -26,6 +27,7 @@ use crate::Result;
 use crate::candidates::{Anchor, CandidateGates, Placed, candidates};
 use crate::engineered::SubmapView;
 use crate::learned::Features;
+use store::PixelSpill;
 
 pub use matcher::{Context, Engineered, Learned, Matcher, Oracle, Outcome, Zeroth};
 
@@ -99,6 +101,9 @@ pub struct CloserParams {
     pub max_track_gap_s: f64,
     /// Which moments a grid method's match relates.
     pub stamps: Stamps,
+    /// References whose pixels stay in memory, the newest; older ones are moved to a
+    /// temporary file and read back when a query needs them (see `store`).
+    pub references_in_memory: usize,
 }
 
 /// `pixels` (`rows x cols`, row-major, columns in driving order) in ground order: columns
@@ -156,13 +161,16 @@ pub struct Keyed {
     pub cols: usize,
     /// Metres per column.
     pub resolution_m: f64,
-    /// Ground-order pixels.
+    /// Ground-order pixels; empty for a reference kept without them (moved to the spill file,
+    /// or not needed by the method).
     pub pixels: Vec<f32>,
     /// When the rig was over each column, ns, in ground order (empty when the submap has none).
     pub column_stamps_ns: Vec<i64>,
     /// The learned model's features, encoded once when the submap is first needed: as a
     /// query with loop candidates, or kept as a reference (most submaps are neither).
     pub features: Option<Features>,
+    /// Where its pixels are in the spill file, once moved there (bytes).
+    spilled_at: Option<u64>,
 }
 
 impl Keyed {
@@ -225,6 +233,7 @@ impl Keyed {
                 m.column_stamps_ns.to_vec()
             },
             features: None,
+            spilled_at: None,
         })
     }
 }
@@ -296,6 +305,9 @@ pub struct LoopCloser {
     truth: Track,
     pending: VecDeque<Keyed>,
     references: Vec<Keyed>,
+    /// References before this index hold no pixels in memory.
+    in_memory_from: usize,
+    spill: PixelSpill,
     last_query_odom: Option<Planar>,
     counts: Counts,
     /// Every pair judged since the last [`LoopCloser::take_attempts`], when kept.
@@ -312,6 +324,8 @@ impl LoopCloser {
             truth: Track::new(),
             pending: VecDeque::new(),
             references: Vec::new(),
+            in_memory_from: 0,
+            spill: PixelSpill::default(),
             last_query_odom: None,
             counts: Counts::default(),
             attempts: None,
@@ -344,6 +358,23 @@ impl LoopCloser {
     /// References kept.
     pub fn references(&self) -> usize {
         self.references.len()
+    }
+
+    /// Bytes of the references' pixels and features held in memory, and bytes of pixels
+    /// moved to the spill file.
+    pub fn reference_bytes(&self) -> (u64, u64) {
+        let held = self
+            .references
+            .iter()
+            .map(|r| {
+                let features = r
+                    .features
+                    .as_ref()
+                    .map_or(0, |f| std::mem::size_of_val(f.data.as_slice()));
+                (std::mem::size_of_val(r.pixels.as_slice()) + features + r.column_stamps_ns.len() * 8) as u64
+            })
+            .sum();
+        (held, self.spill.bytes())
     }
 
     /// Adds a pose of the estimate (the association frame with [`Association::Estimate`]).
@@ -448,13 +479,48 @@ impl LoopCloser {
         });
         if keep {
             self.matcher.prepare(&mut q, &mut self.counts)?;
+            if !self.matcher.reference_needs_pixels() {
+                q.pixels = Vec::new();
+            }
             self.references.push(q);
+            self.spill_old_references()?;
+        }
+        Ok(())
+    }
+
+    /// Moves the pixels of all but the newest `references_in_memory` references to the spill
+    /// file.
+    fn spill_old_references(&mut self) -> Result<()> {
+        let keep_from = self.references.len().saturating_sub(self.params.references_in_memory);
+        while self.in_memory_from < keep_from {
+            let r = &mut self.references[self.in_memory_from];
+            if !r.pixels.is_empty() {
+                r.spilled_at = Some(self.spill.put(&r.pixels)?);
+                r.pixels = Vec::new();
+            }
+            self.in_memory_from += 1;
         }
         Ok(())
     }
 
     /// The match of query `q` with reference `index`, or `None` when the method refuses it.
     fn match_pair(&mut self, index: usize, q: &Keyed) -> Result<Option<Match>> {
+        // a spilled reference's pixels come back for the match and go again after it
+        let spilled = self.references[index].spilled_at;
+        if let Some(offset) = spilled {
+            let r = &mut self.references[index];
+            let mut pixels = Vec::new();
+            self.spill.get(offset, r.rows * r.cols, &mut pixels)?;
+            r.pixels = pixels;
+        }
+        let matched = self.match_held(index, q);
+        if spilled.is_some() {
+            self.references[index].pixels = Vec::new();
+        }
+        matched
+    }
+
+    fn match_held(&mut self, index: usize, q: &Keyed) -> Result<Option<Match>> {
         let r = &self.references[index];
         let context = Context {
             truth: &self.truth,
@@ -598,6 +664,98 @@ mod tests {
         let back = timed(100, 1_000, 10, true);
         assert_eq!(back.column_stamps_ns[0], 1_000 + 990);
         assert_eq!(overlap_stamps(&back, &q, 0.3), Some((1_000 + 990 - 645, 5_000 + 690)));
+    }
+
+    /// Two passes east along the same 24 m of ground with a random texture (20 rows, 5 cm
+    /// columns), 3 m submaps every metre, the second pass 100 s after the first; the estimate
+    /// is the truth. Returns the matches and the reference store's (held, spilled) bytes.
+    fn two_passes(references_in_memory: usize) -> (Vec<Match>, (u64, u64)) {
+        let (rows, res, len_m, speed) = (20usize, 0.05, 3.0, 0.5);
+        let texture = |row: usize, x_m: f64| -> f32 {
+            let cell = (x_m / res).round() as i64;
+            let h =
+                (cell as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (row as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+            ((h >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        };
+        let params = CloserParams {
+            association: Association::Estimate,
+            candidates: CandidateGates::default(),
+            sigma_m: None,
+            reference_spacing_m: 0.3,
+            query_spacing_m: 0.5,
+            max_track_gap_s: 1.0,
+            stamps: Stamps::Anchors,
+            references_in_memory,
+        };
+        let engineered = Engineered {
+            params: crate::engineered::EngineeredParams::default(),
+            min_score: 0.3,
+        };
+        let mut closer = LoopCloser::new(params, Box::new(engineered));
+        let pose = |x_m: f64| Planar {
+            x_m,
+            y_m: 0.0,
+            yaw_rad: 0.0,
+        };
+        let stamp = |pass: i64, x_m: f64| pass * 100_000_000_000 + (x_m / speed * 1e9) as i64;
+        let mut matches = Vec::new();
+        let mut id = 0;
+        for pass in 0..2 {
+            for step in 0..22 {
+                let x0 = f64::from(step);
+                let cols = (len_m / res) as usize;
+                let mut pixels = vec![0f32; rows * cols];
+                for r in 0..rows {
+                    for c in 0..cols {
+                        pixels[r * cols + c] = texture(r, x0 + c as f64 * res);
+                    }
+                }
+                let stamps: Vec<i64> = (0..cols).map(|c| stamp(pass, x0 + c as f64 * res)).collect();
+                for (c, t) in stamps.iter().enumerate().step_by(10) {
+                    closer.add_estimate(*t, pose(x0 + c as f64 * res)).expect("finite");
+                }
+                let end_x = x0 + (cols - 1) as f64 * res;
+                closer.add_estimate(stamps[cols - 1], pose(end_x)).expect("finite");
+                closer.push(
+                    Keyed::new(&SubmapIn {
+                        id,
+                        rows,
+                        cols,
+                        resolution_m: res,
+                        pixels: &pixels,
+                        column_stamps_ns: &stamps,
+                        start_distance_m: x0,
+                        end_distance_m: end_x,
+                        start_pose: pose(x0),
+                        end_pose: pose(end_x),
+                        start_stamp_ns: stamps[0],
+                        end_stamp_ns: stamps[cols - 1],
+                    })
+                    .expect("a good submap"),
+                );
+                id += 1;
+                matches.extend(closer.poll(false).expect("matches"));
+            }
+        }
+        matches.extend(closer.poll(true).expect("matches"));
+        (matches, closer.reference_bytes())
+    }
+
+    #[test]
+    fn references_moved_to_the_spill_file_match_as_they_did_in_memory() {
+        let (in_memory, (held_all, spilled_none)) = two_passes(usize::MAX);
+        let (spilled, (held_one, spilled_bytes)) = two_passes(1);
+        assert!(in_memory.len() >= 10, "the second pass registers: {}", in_memory.len());
+        assert!(in_memory.iter().all(|m| m.along_m.abs() < 0.05), "{in_memory:?}");
+        assert_eq!(spilled, in_memory);
+        assert_eq!(spilled_none, 0);
+        // 44 submaps, one reference each (1 m apart); one keeps its pixels
+        let pixels = 20 * 60 * 4;
+        assert!(
+            held_all >= 44 * pixels && held_one < 2 * pixels + 44 * 60 * 8,
+            "{held_all} {held_one}"
+        );
+        assert_eq!(spilled_bytes, 43 * pixels);
     }
 
     #[test]

@@ -316,6 +316,14 @@ impl Stage for RegisterStage {
             c.pairs,
             c.rejected
         );
+        let (held, spilled) = self.closer.reference_bytes();
+        tracing::info!(
+            references = self.closer.references(),
+            held_mib = format!("{:.1}", held as f64 / f64::from(1u32 << 20)),
+            spilled_mib = format!("{:.1}", spilled as f64 / f64::from(1u32 << 20)),
+            "register: reference store ({} m between references)",
+            self.params.reference_spacing_m
+        );
         self.drops.report(Self::NAME);
         Ok(())
     }

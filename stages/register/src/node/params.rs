@@ -60,6 +60,12 @@ pub struct RegisterParams {
     /// Also publish every candidate pair judged, registered or refused and why, on the
     /// `attempt` output (`RegistrationAttempt`), for `gprflow eval` (default false).
     pub diagnostics: bool,
+    /// References whose pixels the engineered method keeps in memory, the newest (default
+    /// 256, about 77 m of travel at the default spacing); older references' pixels move to a
+    /// temporary file and are read back when a query finds them as loop candidates, so the
+    /// stage's memory does not grow with the run's length by their pixels. The learned method
+    /// keeps only each reference's features.
+    pub references_in_memory: usize,
 }
 
 impl Default for RegisterParams {
@@ -82,6 +88,7 @@ impl Default for RegisterParams {
             stretch_steps: 0,
             stretch_step: 0.015,
             diagnostics: false,
+            references_in_memory: 256,
         }
     }
 }
@@ -118,6 +125,7 @@ impl RegisterParams {
             query_spacing_m: self.query_spacing_m,
             max_track_gap_s: self.max_track_gap_s,
             stamps: self.stamps,
+            references_in_memory: self.references_in_memory,
         }
     }
 }
