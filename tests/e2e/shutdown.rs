@@ -42,6 +42,8 @@ fn sigint_stops_every_stage_and_finalises_the_recording() {
     let id = run.id.clone();
     let (code, err) = run.finish();
     assert_eq!(code, Some(130), "{err}");
+    // a stage whose consumers went first is stopped, not failed
+    assert!(!err.contains("error: node"), "{err}");
     assert!(pids_with(&format!("gprflow-{id}/")).is_empty(), "orphans after SIGINT");
     assert!(gprflow::launch::leftover_resources(&format!("gf{id}_")).is_empty());
     let recorded = payloads(&rec);
@@ -49,6 +51,43 @@ fn sigint_stops_every_stage_and_finalises_the_recording() {
         recorded.get("/gen/trace").is_some_and(|v| !v.is_empty()),
         "the recording is complete and holds data"
     );
+}
+
+#[test]
+fn sigint_stops_a_source_blocked_on_a_slow_consumer_without_an_error() {
+    // the estimator is slower than ingest, so ingest waits in a send when the signal comes;
+    // its consumer may be gone before the send returns
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("five-minutes.mcap");
+    let sim = gprflow(&[
+        "sim",
+        "tools/sim/scenarios/basement.yaml",
+        "--run",
+        "long",
+        "--duration",
+        "300",
+        "-o",
+        rec.to_str().expect("utf8"),
+    ]);
+    assert!(sim.status.success(), "{}", stderr(&sim));
+    let mut child = Command::new(GPRFLOW)
+        .current_dir(repo())
+        .args([
+            "launch",
+            "graphs/odometry.yaml",
+            "--set",
+            &format!("recording={}", rec.display()),
+        ])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("launch starts");
+    std::thread::sleep(Duration::from_millis(1500));
+    kill(child.id(), "-INT");
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().expect("stderr"), &mut err).expect("stderr reads");
+    let code = child.wait().expect("launcher ends").code();
+    assert_eq!(code, Some(130), "still running when interrupted: {err}");
+    assert!(!err.contains("error: node"), "{err}");
 }
 
 /// Pids of processes whose command line mentions `needle`.

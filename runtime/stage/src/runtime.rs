@@ -572,7 +572,16 @@ pub fn run_node<S: Stage>(
     if inputs.is_empty() {
         while !stopped() {
             let t = Instant::now();
-            let status = stage.produce(&mut out)?;
+            let status = match stage.produce(&mut out) {
+                Ok(status) => status,
+                // On a stop, the consumers (stopped by the same signal) may be gone before
+                // this stage sees its flag: a send that fails then is not a failure.
+                Err(e) if stopped() => {
+                    tracing::debug!(node = %spec.node, "stopped while sending: {e}");
+                    break;
+                }
+                Err(e) => return Err(e),
+            };
             record(t);
             if status == Produce::Done {
                 break;
@@ -604,6 +613,10 @@ pub fn run_node<S: Stage>(
                         Err(StageError::Bus(e @ BusError::Decode { .. })) => {
                             tracing::warn!(node = %spec.node, "skipped: {e}");
                             decode_errors += 1;
+                        }
+                        Err(e) if stopped() => {
+                            tracing::debug!(node = %spec.node, "stopped while handling a message: {e}");
+                            break;
                         }
                         other => other?,
                     }
