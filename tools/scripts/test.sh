@@ -28,4 +28,7 @@ tools/peer/gtsam_check.sh --verify
 # numpy regenerate the committed fixtures the dsp and lgpr peer tests (run above) compare against
 .venv-peers/bin/python tools/peer/dsp_fixtures.py --verify
 .venv-peers/bin/python tools/peer/sfcw_fixtures.py --verify
+# a short soak: the odometry graph again and again for 30 s; nothing may grow, be left behind
+# or be lost (tools/bench/soak.sh, 30 minutes of the localisation graph by default)
+GPRFLOW="${CARGO_TARGET_DIR:-target}/debug/gprflow" tools/bench/soak.sh 0.5 odometry
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
