@@ -26,8 +26,8 @@ sets=()
 if [ -n "$recording" ]; then sets=(--set "recording=$recording"); fi
 
 # a run's iceoryx2 resources are named gf{run id}_... in /dev/shm and under /tmp/iceoryx2
-count_shm() { find /dev/shm /tmp/iceoryx2 -maxdepth 4 -name 'gf*' 2> /dev/null | wc -l; }
-count_runs() { find /tmp -maxdepth 1 -name 'gprflow-*' 2> /dev/null | wc -l; }
+count_shm() { find /dev/shm /tmp/iceoryx2 -maxdepth 4 -name 'gf*' 2> /dev/null | wc -l || true; }
+count_runs() { find /tmp -maxdepth 1 -name 'gprflow-*' 2> /dev/null | wc -l || true; }
 shm0=$(count_shm)
 runs0=$(count_runs)
 printf 'run\tnode\tt_s\trss_kib\tfds\n' > "$out/samples.tsv"
@@ -43,9 +43,10 @@ while :; do
     while kill -0 "$launcher" 2> /dev/null; do
         # the stage processes of this launcher: `gprflow stage KIND --spec /tmp/gprflow-ID/NODE.json`
         for pid in $(pgrep -P "$launcher" || true); do
-            spec=$(tr '\0' ' ' < "/proc/$pid/cmdline" 2> /dev/null | grep -o '[^ /]*\.json' || true)
+            # (a process may end between the listing and the reads)
+            spec=$( (tr '\0' ' ' < "/proc/$pid/cmdline") 2> /dev/null | grep -o '[^ /]*\.json' || true)
             rss=$(awk '/^VmRSS/ {print $2}' "/proc/$pid/status" 2> /dev/null || true)
-            fds=$(find "/proc/$pid/fd" -mindepth 1 -maxdepth 1 2> /dev/null | wc -l)
+            fds=$(find "/proc/$pid/fd" -mindepth 1 -maxdepth 1 2> /dev/null | wc -l || true)
             now=$(date +%s.%N)
             if [ -n "$spec" ] && [ -n "$rss" ]; then
                 printf '%s\t%s\t%.1f\t%s\t%s\n' "$n" "${spec%.json}" "$(awk -v a="$now" -v b="$start" 'BEGIN { print a - b }')" "$rss" "$fds" \
