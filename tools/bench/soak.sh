@@ -27,6 +27,8 @@ if [ -n "$recording" ]; then sets=(--set "recording=$recording"); fi
 
 # a run's iceoryx2 resources are named gf{run id}_... in /dev/shm and under /tmp/iceoryx2
 count_shm() { find /dev/shm /tmp/iceoryx2 -maxdepth 4 -name 'gf*' 2> /dev/null | wc -l || true; }
+# pids whose parent is $1 (from /proc, without procps)
+children() { awk -v p="$1" '$4 == p { print $1 }' /proc/[0-9]*/stat 2> /dev/null || true; }
 count_runs() { find /tmp -maxdepth 1 -name 'gprflow-*' 2> /dev/null | wc -l || true; }
 shm0=$(count_shm)
 runs0=$(count_runs)
@@ -42,7 +44,7 @@ while :; do
     start=$(date +%s.%N)
     while kill -0 "$launcher" 2> /dev/null; do
         # the stage processes of this launcher: `gprflow stage KIND --spec /tmp/gprflow-ID/NODE.json`
-        for pid in $(pgrep -P "$launcher" || true); do
+        for pid in $(children "$launcher"); do
             # (a process may end between the listing and the reads)
             spec=$( (tr '\0' ' ' < "/proc/$pid/cmdline") 2> /dev/null | grep -o '[^ /]*\.json' || true)
             rss=$(awk '/^VmRSS/ {print $2}' "/proc/$pid/status" 2> /dev/null || true)
