@@ -16,7 +16,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use mcap::sans_io::{IndexedReadEvent, IndexedReader, IndexedReaderOptions, SummaryReadEvent, SummaryReader};
 
@@ -56,11 +56,21 @@ pub struct Message {
 
 /// A recording on disk. Opening it reads its first bytes only; every read streams from the
 /// file. Files cut off mid-write are read up to the last complete chunk, and the readers say
-/// where reading stopped.
-#[derive(Debug, Clone)]
+/// where reading stopped. The summary section is read once, when first needed.
+#[derive(Clone)]
 pub struct Recording {
     path: PathBuf,
     bytes: u64,
+    summary: OnceLock<Option<mcap::Summary>>,
+}
+
+impl std::fmt::Debug for Recording {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Recording")
+            .field("path", &self.path)
+            .field("bytes", &self.bytes)
+            .finish_non_exhaustive()
+    }
 }
 
 /// Metadata and attachments of a recording.
@@ -114,6 +124,7 @@ impl Recording {
         Ok(Self {
             path: path.to_owned(),
             bytes,
+            summary: OnceLock::new(),
         })
     }
 
@@ -135,8 +146,12 @@ impl Recording {
     }
 
     /// The summary section (channels, schemas, statistics, chunk index), read from the end of
-    /// the file; `None` when the file has none (cut off mid-write) or it does not read.
-    pub fn summary(&self) -> Option<mcap::Summary> {
+    /// the file once; `None` when the file has none (cut off mid-write) or it does not read.
+    pub fn summary(&self) -> Option<&mcap::Summary> {
+        self.summary.get_or_init(|| self.read_summary()).as_ref()
+    }
+
+    fn read_summary(&self) -> Option<mcap::Summary> {
         let mut file = self.file().ok()?;
         let mut reader =
             SummaryReader::new_with_options(mcap::sans_io::SummaryReaderOptions::default().with_file_size(self.bytes));
@@ -155,7 +170,7 @@ impl Recording {
     /// Log time of the first message, ns: from the statistics of the summary, else from the
     /// first message in the file.
     pub fn start_ns(&self) -> Option<u64> {
-        if let Some(stats) = self.summary().and_then(|s| s.stats) {
+        if let Some(stats) = self.summary().and_then(|s| s.stats.as_ref()) {
             return Some(stats.message_start_time);
         }
         self.messages(&Window::default()).ok()?.next().map(|m| m.log_time)
@@ -189,7 +204,7 @@ impl Recording {
                         .map(|c| stats.channel_message_counts.get(&c.id).copied().unwrap_or(0))
                         .sum::<u64>()
                 });
-                let reader = IndexedReader::new_with_options(&summary, options).map_err(|e| RecordError::Mcap {
+                let reader = IndexedReader::new_with_options(summary, options).map_err(|e| RecordError::Mcap {
                     path: self.path.clone(),
                     what: format!("chunk index: {e}"),
                 })?;

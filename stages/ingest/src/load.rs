@@ -11,7 +11,7 @@ use gprflow_msg::{
     Header, Imu, Message, Odometry, Point, Pose, PoseStamped, Quaternion, Sweep, Trace, Vector3, WheelOdometry, decode,
     encode,
 };
-use gprflow_record::{Recording, Window};
+use gprflow_record::{Recording, seconds_window};
 
 use crate::cmu::CmuSequence;
 use crate::error::{Error, Result};
@@ -203,23 +203,32 @@ fn scale_wheel(loaded: &mut Loaded, path: &Path, scale: f64) {
         if *port != Port::Wheel {
             return true;
         }
-        match decode::<WheelOdometry>(payload) {
-            Ok(mut w) => {
-                w.distance_m *= scale;
-                w.speed_mps *= scale;
-                *payload = encode(&w);
+        match scaled_wheel(payload, scale, path, *stamp) {
+            Ok(scaled) => {
+                *payload = scaled;
                 true
             }
-            Err(e) => {
-                dropped.push(format!(
-                    "{}: wheel message at {stamp} ns: cannot be read to apply wheel_scale ({e}); left out",
-                    path.display()
-                ));
+            Err(why) => {
+                dropped.push(why);
                 false
             }
         }
     });
     loaded.dropped.extend(dropped);
+}
+
+/// A wheel payload with its distance and speed multiplied by `scale`; `Err` says (naming the
+/// file and stamp) why it cannot be.
+fn scaled_wheel(payload: &[u8], scale: f64, path: &Path, stamp: i64) -> std::result::Result<Vec<u8>, String> {
+    let mut w = decode::<WheelOdometry>(payload).map_err(|e| {
+        format!(
+            "{}: wheel message at {stamp} ns: cannot be read to apply wheel_scale ({e}); left out",
+            path.display()
+        )
+    })?;
+    w.distance_m *= scale;
+    w.speed_mps *= scale;
+    Ok(encode(&w))
 }
 
 fn center_frequency(r: &Radargram, options: &LoadOptions) -> f64 {
@@ -460,13 +469,15 @@ impl std::fmt::Debug for McapStream {
 }
 
 impl McapStream {
-    /// Opens `path` and picks the topic behind each port; `window` (every topic when its
-    /// `topics` is `None`) narrows it to those topics and a time span.
+    /// Opens `path`, picks the topic behind each port and reads those topics from `start_s`
+    /// to `end_s` seconds after the recording's first message (checked by
+    /// [`gprflow_record::check_window`]; `None`: from its start, to its end).
     ///
     /// # Errors
     /// [`Error::Recording`] for a file that cannot be opened.
-    pub fn open(path: &Path, options: &LoadOptions, mut window: Window) -> Result<Self> {
+    pub fn open(path: &Path, options: &LoadOptions, start_s: Option<f64>, end_s: Option<f64>) -> Result<Self> {
         let rec = open_mcap(path)?;
+        let mut window = seconds_window(&rec, start_s, end_s);
         let wanted = mcap_topics(&rec, &options.topics);
         window.topics = Some(wanted.iter().map(|(_, t)| t.clone()).collect());
         let messages = rec.messages(&window).map_err(|e| Error::Recording {
@@ -499,17 +510,10 @@ impl Iterator for McapStream {
             };
             let stamp = i64::try_from(m.log_time).unwrap_or(i64::MAX);
             if port == Port::Wheel && self.wheel_scale != 1.0 {
-                match decode::<WheelOdometry>(&m.data) {
-                    Ok(mut w) => {
-                        w.distance_m *= self.wheel_scale;
-                        w.speed_mps *= self.wheel_scale;
-                        return Some((port, stamp, encode(&w)));
-                    }
-                    Err(e) => {
-                        tracing::warn!(
-                            "{}: wheel message at {stamp} ns: cannot be read to apply wheel_scale ({e}); left out",
-                            self.path.display()
-                        );
+                match scaled_wheel(&m.data, self.wheel_scale, &self.path, stamp) {
+                    Ok(scaled) => return Some((port, stamp, scaled)),
+                    Err(why) => {
+                        tracing::warn!("{why}");
                         continue;
                     }
                 }

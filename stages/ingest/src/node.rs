@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use gprflow_record::{Pace, Player, Recording, check_window, seconds_window};
+use gprflow_record::{Pace, Player, check_window};
 use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
@@ -107,9 +107,7 @@ impl Stage for IngestStage {
         let format = params.format.resolve(path).map_err(StageError::failed)?;
         if matches!(format, SourceFormat::Mcap | SourceFormat::Auto) {
             // streamed from disk: memory does not grow with the recording
-            let rec = Recording::open(path).map_err(StageError::failed)?;
-            let window = seconds_window(&rec, params.start_s, params.end_s);
-            let stream = McapStream::open(path, &options, window).map_err(StageError::failed)?;
+            let stream = McapStream::open(path, &options, params.start_s, params.end_s).map_err(StageError::failed)?;
             tracing::info!("ingest: {}: {}", params.source, stream.summary);
             let total = stream.total();
             let source = stream.map(|(port, stamp, data)| (port as usize, stamp, data));
