@@ -29,6 +29,7 @@ pub mod factor;
 pub mod factors;
 pub mod graph;
 pub mod imu;
+pub mod incremental;
 pub mod lie;
 pub mod linear;
 pub mod lines;

@@ -1,6 +1,6 @@
 //! Online estimation from time-stamped measurements: creates states at a fixed rate, turns
 //! IMU, wheel, GPR registration, line and prior-map measurements into factors, and runs the
-//! [`FixedLagSmoother`] once per state. Plain code: the `estimate` stage only converts messages.
+//! [`Smoother`] once per state. Plain code: the `estimate` stage only converts messages.
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -15,7 +15,7 @@ use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
 use crate::lie::Pose3;
 use crate::lines::initial_line;
 use crate::noise::{NoiseModel, RobustKernel};
-use crate::smoother::{FixedLagSmoother, SmootherParams};
+use crate::smoother::{Smoother, SmootherParams};
 use crate::values::{HoughLine, ImuBias, Values, VarId, Variable};
 use crate::{Error, Result};
 
@@ -180,7 +180,7 @@ pub struct OnlineEstimator {
     params: OnlineParams,
     graph: FactorGraph,
     values: Values,
-    smoother: FixedLagSmoother,
+    smoother: Smoother,
     states: Vec<NavKeys>,
     stamps_ns: Vec<i64>,
     pim: Option<ImuPreintegration>,
@@ -204,7 +204,7 @@ impl OnlineEstimator {
     #[must_use]
     pub fn new(params: OnlineParams) -> Self {
         Self {
-            smoother: FixedLagSmoother::new(params.smoother),
+            smoother: Smoother::new(params.smoother),
             params,
             graph: FactorGraph::new(),
             values: Values::new(),

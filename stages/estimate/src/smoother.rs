@@ -42,13 +42,28 @@ use nalgebra::DMatrix;
 
 use crate::batch::{LmParams, LmReport, levenberg_marquardt, levenberg_marquardt_keep_hessian};
 use crate::graph::FactorGraph;
+use crate::incremental::{IncrementalParams, IncrementalReport, IncrementalSmoother};
 use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
+/// Which smoother runs the updates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SmootherMethod {
+    /// [`IncrementalSmoother`]: the whole graph, partial re-elimination (the default).
+    #[default]
+    Incremental,
+    /// [`FixedLagSmoother`]: a window of the newest states plus full re-solves.
+    FixedLag,
+}
+
 /// Smoother settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SmootherParams {
+    /// Which smoother.
+    pub method: SmootherMethod,
+    /// Settings of the incremental smoother.
+    pub incremental: IncrementalParams,
     /// States solved per update (the window).
     pub lag_states: usize,
     /// Levenberg-Marquardt iterations per update at most.
@@ -67,6 +82,8 @@ pub struct SmootherParams {
 impl Default for SmootherParams {
     fn default() -> Self {
         Self {
+            method: SmootherMethod::default(),
+            incremental: IncrementalParams::default(),
             lag_states: 30,
             iterations_per_update: 3,
             background: true,
@@ -93,8 +110,10 @@ pub struct FullSolveReport {
 /// What one update did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct UpdateReport {
-    /// The window solve.
-    pub window: LmReport,
+    /// The window solve (fixed-lag smoother).
+    pub window: Option<LmReport>,
+    /// The partial re-elimination (incremental smoother).
+    pub incremental: Option<IncrementalReport>,
     /// True when this update started a full re-solve.
     pub started_full_solve: bool,
     /// A full re-solve merged in this update.
@@ -222,7 +241,8 @@ impl FixedLagSmoother {
             None => None,
         };
         Ok(UpdateReport {
-            window,
+            window: Some(window),
+            incremental: None,
             started_full_solve: started,
             merged,
         })
@@ -363,5 +383,74 @@ impl FixedLagSmoother {
         let all: Vec<usize> = (0..graph.len()).collect();
         let ordering = Ordering::all(values);
         levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
+    }
+}
+
+/// The smoother [`SmootherParams::method`] picks, behind one interface.
+#[derive(Debug)]
+pub enum Smoother {
+    /// The whole graph, partial re-elimination.
+    Incremental(IncrementalSmoother),
+    /// A window plus full re-solves.
+    FixedLag(FixedLagSmoother),
+}
+
+impl Smoother {
+    /// An empty smoother of the method `params` names.
+    #[must_use]
+    pub fn new(params: SmootherParams) -> Self {
+        match params.method {
+            SmootherMethod::Incremental => Self::Incremental(IncrementalSmoother::new(params.incremental)),
+            SmootherMethod::FixedLag => Self::FixedLag(FixedLagSmoother::new(params)),
+        }
+    }
+
+    /// Covariance of the newest state's pose after the last update: the marginal one for the
+    /// incremental smoother, the one given the states behind the window for the fixed-lag one.
+    #[must_use]
+    pub fn newest_covariance(&self) -> Option<&DMatrix<f64>> {
+        match self {
+            Self::Incremental(s) => s.newest_covariance(),
+            Self::FixedLag(s) => s.newest_covariance(),
+        }
+    }
+
+    /// One update (see [`IncrementalSmoother::update`] and [`FixedLagSmoother::update`]).
+    ///
+    /// # Errors
+    /// As theirs.
+    pub fn update(&mut self, graph: &FactorGraph, values: &mut Values, new_state: &[VarId]) -> Result<UpdateReport> {
+        match self {
+            Self::Incremental(s) => Ok(UpdateReport {
+                window: None,
+                incremental: Some(s.update(graph, values, new_state)?),
+                started_full_solve: false,
+                merged: None,
+            }),
+            Self::FixedLag(s) => s.update(graph, values, new_state),
+        }
+    }
+
+    /// Writes the best estimate of every variable to `values` (the incremental smoother's
+    /// [`IncrementalSmoother::refresh`]; the fixed-lag smoother's are always written).
+    ///
+    /// # Errors
+    /// Values that do not belong to this smoother.
+    pub fn refresh(&mut self, values: &mut Values) -> Result<()> {
+        match self {
+            Self::Incremental(s) => s.refresh(values),
+            Self::FixedLag(_) => Ok(()),
+        }
+    }
+
+    /// Ends a run with a solve of the whole graph to convergence.
+    ///
+    /// # Errors
+    /// A factor that cannot be evaluated.
+    pub fn finish(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
+        match self {
+            Self::Incremental(s) => s.finish(graph, values),
+            Self::FixedLag(s) => s.finish(graph, values),
+        }
     }
 }
