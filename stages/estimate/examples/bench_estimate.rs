@@ -41,6 +41,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             relinearize_velocity_mps: env("RELIN_VEL", d.relinearize_velocity_mps),
             relinearize_bias: env("RELIN_BIAS", d.relinearize_bias),
             wildfire_threshold: env("WILD", d.wildfire_threshold),
+            max_relinearized_per_update: env("RELIN_CAP", d.max_relinearized_per_update as f64) as usize,
             ..IncrementalParams::default()
         },
         ..SmootherParams::default()

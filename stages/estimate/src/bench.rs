@@ -36,7 +36,7 @@ pub struct BatchFigures {
     pub ate_max_m: f64,
 }
 
-/// One update per state with the fixed-lag smoother.
+/// One update per state with the smoother.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct IncrementalFigures {
     /// Updates (= states).
@@ -47,7 +47,13 @@ pub struct IncrementalFigures {
     pub update_ms_p99: f64,
     /// Maximum, ms.
     pub update_ms_max: f64,
-    /// Full re-solves merged during the run.
+    /// Per-update wall time of the updates that carry a loop closure, ms (median).
+    pub loop_closure_update_ms_p50: f64,
+    /// 99th percentile, ms.
+    pub loop_closure_update_ms_p99: f64,
+    /// Maximum, ms.
+    pub loop_closure_update_ms_max: f64,
+    /// Full re-solves merged during the run (fixed-lag smoother).
     pub full_solves: usize,
     /// Longest full re-solve (solver time on its thread), ms.
     pub full_solve_ms_max: f64,
@@ -170,6 +176,7 @@ fn run_incremental(
     let mut smoother = Smoother::new(params);
     let mut times_ms = Vec::with_capacity(problem.params.states);
     let mut full_ms = Vec::new();
+    let mut closure_ms = Vec::new();
     for i in 0..problem.params.states {
         if let Some(hz) = pace_hz.filter(|hz| hz.is_finite() && *hz > 0.0) {
             let due = std::time::Duration::from_secs_f64(i as f64 / hz);
@@ -193,6 +200,9 @@ fn run_incremental(
         let rep = smoother.update(&pg.graph, &mut pg.values, &[keys.pose, keys.velocity, keys.bias])?;
         let _estimate = pg.values.pose(keys.pose)?;
         times_ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        if problem.loop_closures.iter().any(|lc| lc.to == i && lc.from < i) {
+            closure_ms.push(times_ms[i]);
+        }
         if let Some(m) = rep.merged {
             full_ms.push(m.lm.seconds * 1e3);
         }
@@ -207,11 +217,15 @@ fn run_incremental(
     let final_error = batch.graph.error(&pg.values)?;
     times_ms.sort_by(f64::total_cmp);
     full_ms.sort_by(f64::total_cmp);
+    closure_ms.sort_by(f64::total_cmp);
     Ok(IncrementalFigures {
         updates: times_ms.len(),
         update_ms_p50: percentile(&times_ms, 50.0),
         update_ms_p99: percentile(&times_ms, 99.0),
         update_ms_max: times_ms.last().copied().unwrap_or(f64::NAN),
+        loop_closure_update_ms_p50: percentile(&closure_ms, 50.0),
+        loop_closure_update_ms_p99: percentile(&closure_ms, 99.0),
+        loop_closure_update_ms_max: closure_ms.last().copied().unwrap_or(f64::NAN),
         full_solves: full_ms.len(),
         full_solve_ms_max: full_ms.last().copied().unwrap_or(0.0),
         full_solve_ms_p50: if full_ms.is_empty() {
