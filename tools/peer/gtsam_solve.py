@@ -120,6 +120,10 @@ out = {
     "batch_ate_max_m": ate(res)[1],
     "dead_reckoning_ate_rmse_m": ate(init)[0],
 }
+# The marginal covariance of the last pose at the batch optimum ([rot x3, trans x3], tangent
+# at the pose), for the incremental smoother's newest-state covariance.
+marginals = gtsam.Marginals(graph, res)
+out["last_pose_marginal_covariance"] = marginals.marginalCovariance(X(n - 1)).tolist()
 if args.isam2:
     ip = gtsam.ISAM2Params()
     ip.setRelinearizeThreshold(0.1)

@@ -62,6 +62,9 @@ pub struct IncrementalFigures {
     /// The back-substitution of every variable at the end of the run (the incremental
     /// smoother's `refresh`), ms.
     pub refresh_ms: f64,
+    /// The newest pose's covariance `[rot x3, trans x3]` after the last update (rows), if the
+    /// smoother computed one: the marginal one for the incremental smoother.
+    pub newest_pose_covariance: Option<Vec<Vec<f64>>>,
     /// ATE RMSE of the estimate at the end of the run, before the final solve, m.
     pub online_ate_rmse_m: f64,
     /// Batch-graph error at that estimate.
@@ -207,6 +210,9 @@ fn run_incremental(
             full_ms.push(m.lm.seconds * 1e3);
         }
     }
+    let newest_pose_covariance = smoother
+        .newest_covariance()
+        .map(|c| c.row_iter().map(|r| r.iter().copied().collect()).collect());
     let t = Instant::now();
     smoother.refresh(&mut pg.values)?;
     let refresh_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -234,6 +240,7 @@ fn run_incremental(
             percentile(&full_ms, 50.0)
         },
         refresh_ms,
+        newest_pose_covariance,
         online_ate_rmse_m: online_ate.0,
         online_error,
         final_solve_seconds: fin.seconds,

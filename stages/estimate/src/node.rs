@@ -16,7 +16,17 @@ use crate::lie::Pose3;
 use crate::online::{
     FirstStatePrior, OnlineEstimator, OnlineParams, RegistrationMeasurement, RegistrationOutcome, StateOutput,
 };
-use crate::smoother::SmootherParams;
+use crate::smoother::{SmootherMethod, SmootherParams};
+
+/// Which smoother the `estimate` stage runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SmootherChoice {
+    /// [`crate::incremental::IncrementalSmoother`].
+    Incremental,
+    /// [`crate::smoother::FixedLagSmoother`].
+    FixedLag,
+}
 
 /// Parameters of the `estimate` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -24,7 +34,11 @@ use crate::smoother::SmootherParams;
 pub struct EstimateParams {
     /// States per second (default 10).
     pub state_rate_hz: f64,
-    /// Smoother window, states (default 30).
+    /// `incremental` (default): the whole graph kept eliminated, each update re-eliminating
+    /// only what its factors touch; deterministic, marginal covariances. `fixed_lag`: a window
+    /// of the newest states plus full re-solves when a loop closure reaches behind it.
+    pub smoother: SmootherChoice,
+    /// Window of the `fixed_lag` smoother, states (default 30).
     pub lag_states: usize,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
@@ -62,11 +76,19 @@ pub struct EstimateParams {
     pub line_min_baseline_m: f64,
     /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
     pub nonholonomic_sigma_mps: f64,
-    /// Publish Trajectory and LineMap snapshots every this many states (default 10).
+    /// Without an `initial_pose`, `gps` or `map_fix` input, the first state's roll and pitch
+    /// come from the mean specific force over this many seconds of IMU at the start (the
+    /// vehicle at rest or moving steadily), and the first state is made then; yaw and position
+    /// start at 0 (default 1.0; 0: a level first state at the first sample).
+    pub gravity_align_s: f64,
+    /// Publish Trajectory and LineMap snapshots every this many states at least (default 10;
+    /// 0: only at the end). The interval grows to a tenth of the states so far, so that
+    /// snapshots of a long run cost a constant per state, not one whole trajectory per ten
+    /// states.
     pub snapshot_every_states: u64,
-    /// Loop-closure full re-solves on a background thread (default true). `false` solves them
-    /// in the update that needs one: slower, but the same input always gives the same output
-    /// (what evaluation runs and regression diffs need).
+    /// `fixed_lag` smoother: loop-closure full re-solves on a background thread (default
+    /// true). `false` solves them in the update that needs one: slower, but the same input
+    /// always gives the same output.
     pub background_solves: bool,
     /// Also publish the verdict on every registration (taken, or dropped by the gate, with
     /// its residual) on the `registration_check` output (`RegistrationCheck`), for
@@ -79,6 +101,7 @@ impl Default for EstimateParams {
         let o = OnlineParams::default();
         Self {
             state_rate_hz: o.state_rate_hz,
+            smoother: SmootherChoice::Incremental,
             lag_states: o.smoother.lag_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
@@ -95,6 +118,7 @@ impl Default for EstimateParams {
             registration_gate_growth_mps: o.registration_gate_growth_mps,
             line_min_baseline_m: o.line_min_baseline_m,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
+            gravity_align_s: o.gravity_align_s,
             snapshot_every_states: 10,
             background_solves: o.smoother.background,
             diagnostics: false,
@@ -107,6 +131,10 @@ impl EstimateParams {
         OnlineParams {
             state_rate_hz: self.state_rate_hz,
             smoother: SmootherParams {
+                method: match self.smoother {
+                    SmootherChoice::Incremental => SmootherMethod::Incremental,
+                    SmootherChoice::FixedLag => SmootherMethod::FixedLag,
+                },
                 lag_states: self.lag_states,
                 background: self.background_solves,
                 ..SmootherParams::default()
@@ -127,6 +155,7 @@ impl EstimateParams {
             registration_gate_growth_mps: self.registration_gate_growth_mps,
             line_min_baseline_m: self.line_min_baseline_m,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
+            gravity_align_s: self.gravity_align_s,
             first_state: FirstStatePrior {
                 acc_bias_sigma_mps2: self.acc_bias_prior_sigma_mps2,
                 gyro_bias_sigma_radps: self.gyro_bias_prior_sigma_radps,
@@ -157,6 +186,7 @@ impl EstimateParams {
         }
         let off_or_positive = [
             ("nonholonomic_sigma_mps", self.nonholonomic_sigma_mps),
+            ("gravity_align_s", self.gravity_align_s),
             ("registration_across_sigma_m", self.registration_across_sigma_m),
             ("registration_gate_m", self.registration_gate_m),
             ("registration_gate_growth_mps", self.registration_gate_growth_mps),
@@ -193,6 +223,8 @@ pub struct EstimateStage {
     drops: Drops,
     /// Registrations dropped by `registration_gate_m`.
     gated_registrations: u64,
+    /// States after which the next snapshot is due.
+    next_snapshot: u64,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -304,13 +336,16 @@ impl EstimateStage {
             gyro_bias: vec_msg(&s.bias.gyro_radps),
         };
         out.send(self.state_out, &msg)?;
-        if self.params.snapshot_every_states > 0 && (s.index + 1).is_multiple_of(self.params.snapshot_every_states) {
+        let states = s.index + 1;
+        if self.params.snapshot_every_states > 0 && states >= self.next_snapshot {
+            self.next_snapshot = states + self.params.snapshot_every_states.max(states / 10);
             self.publish_snapshots(s.stamp_ns, out)?;
         }
         Ok(())
     }
 
     fn publish_snapshots(&mut self, stamp_ns: i64, out: &mut Outputs) -> Result<(), StageError> {
+        self.est.refresh().map_err(StageError::failed)?;
         let traj = self.est.trajectory().map_err(StageError::failed)?;
         let msg = Trajectory {
             header: Header::new(stamp_ns, "world"),
@@ -391,6 +426,7 @@ impl Stage for EstimateStage {
             est.wait_for_origin();
         }
         Ok(Self {
+            next_snapshot: params.snapshot_every_states,
             est,
             state_out: ports.output("state")?,
             trajectory_out: ports.output("trajectory")?,

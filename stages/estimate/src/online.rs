@@ -58,6 +58,13 @@ pub struct OnlineParams {
     pub nonholonomic_sigma_mps: f64,
     /// Prior on the first state.
     pub first_state: FirstStatePrior,
+    /// When no origin is given ([`OnlineEstimator::set_origin`] or
+    /// [`OnlineEstimator::wait_for_origin`] before the first sample), the first state's roll
+    /// and pitch come from the mean specific force over this many seconds of IMU at the start
+    /// (gravity alignment; yaw 0, position 0), and the first state is made at the end of that
+    /// time. Assumes the vehicle is at rest or moving steadily then. 0: no alignment, the
+    /// first state level at the first sample.
+    pub gravity_align_s: f64,
 }
 
 /// Prior on the first state: the origin of the estimate's frame, and what is known of the
@@ -105,8 +112,20 @@ impl Default for OnlineParams {
             line_prior_sigma: 1.0,
             nonholonomic_sigma_mps: 0.1,
             first_state: FirstStatePrior::default(),
+            gravity_align_s: 1.0,
         }
     }
+}
+
+/// `world_from_body` rotation with yaw 0 whose body frame sees gravity along `specific_force`
+/// (the accelerometer's mean at rest: `+g` along the world's up): roll `atan2(f_y, f_z)`, pitch
+/// `atan2(-f_x, |f_yz|)`.
+#[must_use]
+pub fn level_from_specific_force(specific_force: &Vector3<f64>) -> nalgebra::Matrix3<f64> {
+    let f = specific_force;
+    let roll = f.y.atan2(f.z);
+    let pitch = (-f.x).atan2(f.y.hypot(f.z));
+    nalgebra::Rotation3::from_euler_angles(roll, pitch, 0.0).into_inner()
 }
 
 /// What became of a registration ([`OnlineEstimator::registration`]).
@@ -193,6 +212,11 @@ pub struct OnlineEstimator {
     /// Drop IMU samples until [`OnlineEstimator::set_origin`] is called.
     waiting_for_origin: bool,
     dropped_before_origin: u64,
+    /// An origin was set or is awaited: no gravity alignment.
+    origin_given: bool,
+    /// Gravity alignment: the first sample's stamp, the sum of the specific forces and their
+    /// count so far.
+    aligning: Option<(i64, Vector3<f64>, u64)>,
     /// The newest query stamp of the registrations added so far, and of those the estimate
     /// has solved with (the registration gate widens from it).
     registered_query_ns: Option<i64>,
@@ -219,6 +243,8 @@ impl OnlineEstimator {
             origin: Pose3::identity(),
             waiting_for_origin: false,
             dropped_before_origin: 0,
+            origin_given: false,
+            aligning: None,
             registered_query_ns: None,
             solved_query_ns: None,
         }
@@ -260,6 +286,17 @@ impl OnlineEstimator {
             self.dropped_before_origin += 1;
             return Ok(None);
         }
+        if self.states.is_empty() && !self.origin_given && self.params.gravity_align_s > 0.0 {
+            let (t0, sum, count) = self.aligning.get_or_insert((stamp_ns, Vector3::zeros(), 0));
+            *sum += acc_mps2;
+            *count += 1;
+            if ((stamp_ns - *t0) as f64) < self.params.gravity_align_s * 1e9 {
+                return Ok(None);
+            }
+            let mean = *sum / *count as f64;
+            self.origin = Pose3::new(level_from_specific_force(&mean), self.origin.trans_m);
+            self.origin_given = true;
+        }
         if self.states.is_empty() {
             out = Some(self.add_state(stamp_ns)?);
         } else if let Some((t0, a, w)) = self.last_imu {
@@ -286,6 +323,7 @@ impl OnlineEstimator {
         }
         self.origin = world_from_body;
         self.waiting_for_origin = false;
+        self.origin_given = true;
         true
     }
 
@@ -294,6 +332,7 @@ impl OnlineEstimator {
     pub fn wait_for_origin(&mut self) {
         if self.states.is_empty() {
             self.waiting_for_origin = true;
+            self.origin_given = true;
         }
     }
 
@@ -557,14 +596,29 @@ impl OnlineEstimator {
         self.stamps_ns.push(stamp_ns);
         let bias = *self.values.bias(keys.bias)?;
         self.pim = Some(ImuPreintegration::new(self.params.imu, bias));
-        self.smoother
+        let report = self
+            .smoother
             .update(&self.graph, &mut self.values, &[keys.pose, keys.velocity, keys.bias])?;
         let update_s = start.elapsed().as_secs_f64();
+        let inc = report.incremental.unwrap_or_default();
+        tracing::trace!(
+            state = i,
+            update_ms = update_s * 1e3,
+            eliminated = inc.eliminated,
+            relinearized = inc.relinearized,
+            solved = inc.solved,
+            max_separator = inc.max_separator,
+            "estimate: update"
+        );
         if update_s * self.params.state_rate_hz > 1.0 {
             self.late_updates += 1;
             tracing::warn!(
                 state = i,
                 update_ms = update_s * 1e3,
+                eliminated = inc.eliminated,
+                relinearized = inc.relinearized,
+                solved = inc.solved,
+                max_separator = inc.max_separator,
                 "estimate: update slower than the state period"
             );
         }
@@ -587,6 +641,15 @@ impl OnlineEstimator {
         };
         self.states.push(keys);
         keys
+    }
+
+    /// Brings every variable's estimate up to date (the incremental smoother's updates
+    /// write only what moved noticeably); call before reading a whole trajectory.
+    ///
+    /// # Errors
+    /// Never for a consistent estimator.
+    pub fn refresh(&mut self) -> Result<()> {
+        self.smoother.refresh(&mut self.values)
     }
 
     /// Every state's `(index, stamp, pose)`.
@@ -691,6 +754,8 @@ mod tests {
                 velocity_sigma_mps: 10.0,
                 ..FirstStatePrior::default()
             },
+            // the circle starts moving: no gravity alignment, the first state at t = 0
+            gravity_align_s: 0.0,
             ..params
         };
         let mut est = OnlineEstimator::new(params);
@@ -878,8 +943,44 @@ mod tests {
     }
 
     #[test]
+    fn a_tilted_start_is_levelled_from_the_first_second_of_imu() {
+        // At rest on a slope (roll 0.1, pitch -0.05 rad, yaw 0), 5 s, wheel reading 0.
+        let tilt = nalgebra::Rotation3::from_euler_angles(0.1, -0.05, 0.0);
+        let specific_force = tilt.inverse() * Vector3::new(0.0, 0.0, 9.80665);
+        let run = |gravity_align_s: f64| {
+            let mut est = OnlineEstimator::new(OnlineParams {
+                gravity_align_s,
+                ..OnlineParams::default()
+            });
+            let mut first = None;
+            for k in 0..1000i64 {
+                est.wheel(0.0);
+                if let Some(s) = est.imu(k * 5_000_000, specific_force, Vector3::zeros()).expect("imu") {
+                    first.get_or_insert(s);
+                }
+            }
+            let first = first.expect("a state");
+            let traj = est.trajectory().expect("trajectory");
+            (first, traj[traj.len() - 1].2)
+        };
+        let angle = |p: &Pose3| nalgebra::Rotation3::from_matrix_unchecked(p.rot).angle_to(&tilt);
+        let (first, last) = run(1.0);
+        // made at the end of the first second, already tilted as the platform is
+        assert_eq!(first.stamp_ns, 1_000_000_000);
+        assert!(angle(&first.pose) < 1e-6, "first state {} rad off", angle(&first.pose));
+        assert!(angle(&last) < 2e-3, "last state {} rad off", angle(&last));
+        // without alignment the first state is level, 0.11 rad off
+        let (first, _) = run(0.0);
+        assert_eq!(first.stamp_ns, 0);
+        assert!(angle(&first.pose) > 0.1, "{}", angle(&first.pose));
+    }
+
+    #[test]
     fn non_finite_measurements_are_refused_and_change_nothing() {
-        let mut est = OnlineEstimator::new(OnlineParams::default());
+        let mut est = OnlineEstimator::new(OnlineParams {
+            gravity_align_s: 0.0,
+            ..OnlineParams::default()
+        });
         let g = Vector3::new(0.0, 0.0, 9.80665);
         assert!(est.imu(0, g, Vector3::zeros()).expect("first sample").is_some());
         let bad = est.imu(5_000_000, Vector3::new(f64::NAN, 0.0, 9.8), Vector3::zeros());
