@@ -50,8 +50,10 @@ use crate::linear::Ordering;
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
-/// Settings of the incremental smoother.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Settings of the incremental smoother (the `estimate` stage's `incremental` parameter).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
+#[serde(deny_unknown_fields, default)]
 pub struct IncrementalParams {
     /// A pose (or a line's angle) is relinearised when a rotation component of its step from
     /// the linearisation point exceeds this, rad.
@@ -140,6 +142,8 @@ pub struct IncrementalSmoother {
     changed: Vec<bool>,
     /// Variables whose step exceeds the relinearisation threshold.
     over_threshold: BTreeSet<usize>,
+    /// Per variable: in `over_threshold`.
+    is_over: Vec<bool>,
     known_factors: usize,
     // Per group.
     groups: Vec<Vec<usize>>,
@@ -154,6 +158,8 @@ pub struct IncrementalSmoother {
     newest: Option<usize>,
     newest_cov: Option<DMatrix<f64>>,
     states: usize,
+    /// The group of every state, in order.
+    state_groups: Vec<usize>,
 }
 
 impl IncrementalSmoother {
@@ -225,6 +231,7 @@ impl IncrementalSmoother {
             self.factors_of.push(Vec::new());
             self.group_of.push(usize::MAX);
             self.changed.push(false);
+            self.is_over.push(false);
         }
         let state: Vec<usize> = new_state.iter().map(|v| v.0).filter(|v| *v >= first_new).collect();
         if !state.is_empty() {
@@ -232,6 +239,17 @@ impl IncrementalSmoother {
             marked.insert(g);
             self.newest = Some(g);
             self.states += 1;
+            self.state_groups.push(g);
+            // Odometry alone stacks each new state on the root: the tree above the last
+            // re-dissected part is a path. Re-dissecting the newest states at doubling
+            // scales (64, 128, ... states, every state log2(run / 64) times in all, blocks of
+            // at most `REBALANCE_MAX`) keeps it shallow, so that a factor deep in the past
+            // re-eliminates a short path even in a run without loop closures.
+            let u = self.states;
+            if u.is_multiple_of(REBALANCE_MIN) {
+                let k = (1usize << u.trailing_zeros()).min(REBALANCE_MAX);
+                marked.extend(self.state_groups[u - k..].iter().copied());
+            }
         }
         for k in first_new..values.len() {
             if self.group_of[k] == usize::MAX {
@@ -515,12 +533,13 @@ impl IncrementalSmoother {
             }
         };
         let l = chol.l();
-        let s = l
-            .solve_lower_triangular(&h.view((0, dg), (dg, ds)).into_owned())
+        // L^-1 of the small frontal block once, then products (matrix kernels) for the
+        // separator's columns, which can be hundreds.
+        let linv = l
+            .solve_lower_triangular(&DMatrix::identity(dg, dg))
             .ok_or_else(|| Error::LinearSolve(format!("group {g}: triangular solve")))?;
-        let d = -l
-            .solve_lower_triangular(&rhs.rows(0, dg).into_owned())
-            .ok_or_else(|| Error::LinearSolve(format!("group {g}: triangular solve")))?;
+        let s = &linv * h.view((0, dg), (dg, ds));
+        let d = -(&linv * rhs.rows(0, dg));
         let st = s.transpose();
         let marginal = Hessian {
             h: h.view((dg, dg), (ds, ds)) - &st * &s,
@@ -579,10 +598,14 @@ impl IncrementalSmoother {
         for i in 0..self.groups[g].len() {
             let j = self.groups[g][i];
             values.set(VarId(j), self.theta.get(VarId(j))?.retract(self.delta[j].as_view()))?;
-            if self.needs_relinearisation(j)? {
-                self.over_threshold.insert(j);
-            } else {
-                self.over_threshold.remove(&j);
+            let over = self.needs_relinearisation(j)?;
+            if over != self.is_over[j] {
+                self.is_over[j] = over;
+                if over {
+                    self.over_threshold.insert(j);
+                } else {
+                    self.over_threshold.remove(&j);
+                }
             }
         }
         Ok(())
@@ -616,7 +639,11 @@ impl IncrementalSmoother {
     fn relinearisation_set(&mut self) -> Result<Vec<usize>> {
         let cap = self.params.max_relinearized_per_update;
         if cap == 0 || self.over_threshold.len() <= cap {
-            return Ok(std::mem::take(&mut self.over_threshold).into_iter().collect());
+            let all: Vec<usize> = std::mem::take(&mut self.over_threshold).into_iter().collect();
+            for &j in &all {
+                self.is_over[j] = false;
+            }
+            return Ok(all);
         }
         let mut by_excess: Vec<(f64, usize)> = self
             .over_threshold
@@ -628,6 +655,7 @@ impl IncrementalSmoother {
         chosen.sort_unstable();
         for j in &chosen {
             self.over_threshold.remove(j);
+            self.is_over[*j] = false;
         }
         Ok(chosen)
     }
@@ -707,6 +735,11 @@ impl IncrementalSmoother {
         levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
     }
 }
+
+/// Re-dissect the newest states every this many states (see [`IncrementalSmoother::update`]).
+const REBALANCE_MIN: usize = 64;
+/// ... at most this many at once.
+const REBALANCE_MAX: usize = 256;
 
 /// Parts of the graph at most this large are ordered by minimum degree.
 const DISSECTION_LEAF: usize = 24;
@@ -841,5 +874,159 @@ fn minimum_degree(adj: &[Vec<usize>], nodes: &[usize], mark: &mut [usize], order
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::{BetweenPose, PosePrior};
+    use crate::lie::Pose3;
+    use crate::linear::{Factorization, HessianStructure, linearize};
+    use crate::noise::NoiseModel;
+    use nalgebra::Vector6;
+
+    /// A pose chain driven one state per update (a step of 1 m and 0.05 rad yaw, measured
+    /// with a small bias so that the loop closures pull), with a loop closure from every
+    /// 25th state to the one `lap` before; initial values from dead reckoning.
+    fn drive(
+        smoother: &mut IncrementalSmoother,
+        states: usize,
+        lap: usize,
+        mut each: impl FnMut(usize, IncrementalReport),
+    ) -> (FactorGraph, Values, Vec<VarId>) {
+        let mut graph = FactorGraph::new();
+        let mut values = Values::new();
+        let noise = NoiseModel::diagonal(&[0.01, 0.01, 0.01, 0.05, 0.05, 0.05]).expect("noise");
+        let truth_step = Pose3::exp(&Vector6::new(
+            0.0,
+            0.0,
+            2.0 * std::f64::consts::PI / lap as f64,
+            1.0,
+            0.0,
+            0.0,
+        ));
+        let measured = Pose3::exp(&Vector6::new(0.0, 0.0, 0.003, 0.0, 0.02, 0.0)).compose(&truth_step);
+        let mut ids = Vec::new();
+        for i in 0..states {
+            let guess = match ids.last() {
+                Some(prev) => values.pose(*prev).expect("pose").compose(&measured),
+                None => Pose3::identity(),
+            };
+            let id = values.push(Variable::Pose(guess));
+            if let Some(prev) = ids.last() {
+                graph.add(BetweenPose::new(*prev, id, measured, noise.clone()).expect("factor"));
+            } else {
+                graph.add(PosePrior::new(id, Pose3::identity(), noise.clone()).expect("factor"));
+            }
+            if i >= lap && i % 25 == 0 {
+                // the same place a lap ago
+                graph.add(BetweenPose::new(ids[i - lap], id, Pose3::identity(), noise.clone()).expect("factor"));
+            }
+            ids.push(id);
+            let report = smoother.update(&graph, &mut values, &[id]).expect("update");
+            each(i, report);
+        }
+        (graph, values, ids)
+    }
+
+    fn batch(graph: &FactorGraph, values: &Values) -> Values {
+        let mut v = values.clone();
+        let all: Vec<usize> = (0..graph.len()).collect();
+        let ordering = Ordering::all(&v);
+        levenberg_marquardt(graph, &all, &mut v, &ordering, &LmParams::default(), &mut None).expect("lm");
+        v
+    }
+
+    #[test]
+    fn reaches_the_batch_optimum_and_its_marginal_covariance() {
+        let mut smoother = IncrementalSmoother::new(IncrementalParams::default());
+        let (graph, mut values, ids) = drive(&mut smoother, 300, 100, |_, _| {});
+        smoother.refresh(&mut values).expect("refresh");
+        let optimum = batch(&graph, &values);
+        let (online, best) = (graph.error(&values).expect("e"), graph.error(&optimum).expect("e"));
+        assert!(online <= best * 1.01, "online error {online}, optimum {best}");
+        // The newest pose's covariance is its marginal: the block of the inverse Hessian at
+        // the smoother's linearisation point.
+        let last = *ids.last().expect("states");
+        let all: Vec<usize> = (0..graph.len()).collect();
+        let ordering = Ordering::all(&smoother.theta);
+        let st = HessianStructure::new(&graph, &all, &smoother.theta, &ordering).expect("structure");
+        let ne = linearize(&graph, &all, &smoother.theta, &st).expect("linearize");
+        let f = Factorization::new(&st, &ne.hessian, 0.0).expect("llt");
+        let dense = crate::linear::marginal_covariance(&f, st.ordering(), last).expect("cov");
+        let ours = smoother.newest_covariance().expect("covariance");
+        assert!((ours - &dense).norm() < 1e-9 * dense.norm(), "{ours} vs {dense}");
+        // and grows along the chain: the last pose is far less certain than the prior's 5 cm
+        assert!(ours[(3, 3)].sqrt() > 0.1, "{ours}");
+    }
+
+    #[test]
+    fn an_update_re_eliminates_what_it_touches_not_the_run() {
+        // Odometry steps touch the newest states; a loop closure deep into the past a
+        // logarithmic path of the tree, not the states since.
+        let mut eliminated = Vec::new();
+        let mut smoother = IncrementalSmoother::new(IncrementalParams {
+            relinearize_rotation_rad: 10.0,
+            relinearize_translation_m: 10.0,
+            ..IncrementalParams::default()
+        });
+        let (mut graph, mut values, ids) = drive(&mut smoother, 2000, 100_000, |_, r| eliminated.push(r.eliminated));
+        for (i, e) in eliminated.iter().enumerate().skip(100) {
+            let u = i + 1;
+            // the newest two states, and every 64 states the re-dissection of the newest ones
+            let most = if u.is_multiple_of(REBALANCE_MIN) {
+                (1usize << u.trailing_zeros()).min(REBALANCE_MAX) + 2
+            } else {
+                2
+            };
+            assert!(*e <= most, "update {i}: {e} groups re-eliminated");
+        }
+        let noise = NoiseModel::isotropic(6, 0.1).expect("noise");
+        let rel = values
+            .pose(ids[100])
+            .expect("pose")
+            .between(values.pose(ids[101]).expect("pose"));
+        graph.add(BetweenPose::new(ids[100], ids[101], rel, noise.clone()).expect("factor"));
+        let deep = smoother.update(&graph, &mut values, &[]).expect("update");
+        assert!(deep.eliminated < 100, "{deep:?}");
+        let rel = values
+            .pose(ids[10])
+            .expect("pose")
+            .between(values.pose(ids[1990]).expect("pose"));
+        graph.add(BetweenPose::new(ids[10], ids[1990], rel, noise).expect("factor"));
+        let closure = smoother.update(&graph, &mut values, &[]).expect("update");
+        assert!(closure.eliminated < 100, "{closure:?}");
+    }
+
+    #[test]
+    fn the_same_input_gives_the_same_estimate() {
+        let run = || {
+            let mut smoother = IncrementalSmoother::new(IncrementalParams::default());
+            let (_, mut values, _) = drive(&mut smoother, 200, 60, |_, _| {});
+            smoother.refresh(&mut values).expect("refresh");
+            values
+        };
+        let (a, b) = (run(), run());
+        assert_eq!(a.as_slice(), b.as_slice());
+    }
+
+    #[test]
+    fn nested_dissection_orders_every_node_once() {
+        // a ring of 500 with chords, and a few isolated nodes
+        let n = 510;
+        let mut adj = vec![Vec::new(); n];
+        for i in 0..500 {
+            for j in [(i + 1) % 500, (i + 37) % 500] {
+                adj[i].push(j);
+                adj[j].push(i);
+            }
+        }
+        let dims = vec![6; n];
+        let mut order = Vec::new();
+        nested_dissection(&adj, &dims, (0..n).collect(), &mut vec![usize::MAX; n], &mut order);
+        let mut seen = order.clone();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..n).collect::<Vec<_>>());
     }
 }

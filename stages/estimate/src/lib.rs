@@ -11,9 +11,11 @@
 //! - [`graph`] and [`linear`]: the factor graph, its linearisation into block-sparse normal
 //!   equations and faer's supernodal sparse Cholesky, whose symbolic factorisation is kept while
 //!   the structure stays (every LM iteration; every window update of the same shape).
-//! - [`batch`]: Levenberg-Marquardt; [`smoother`]: the incremental smoother — a fixed-lag window
-//!   on the critical path plus full re-solves on a background thread when a loop closure
-//!   reaches behind the window; its module docs argue why this and not iSAM2.
+//! - [`batch`]: Levenberg-Marquardt; [`incremental`]: the incremental smoother, iSAM2-style
+//!   partial re-elimination of a Bayes tree kept over the whole graph (nested-dissection
+//!   ordering, fluid relinearisation, marginal covariance of the newest state);
+//!   [`smoother`]: one interface over it and the older fixed-lag smoother (a window plus
+//!   full re-solves).
 //! - [`lines`]: initial values of line parameters (Fig. 5.7, eq. 5.8-5.12).
 //! - [`online`]: states at a fixed rate from time-stamped measurements (plain code).
 //! - [`problem`] and [`bench`](mod@bench): the GTSAM peer's export format and `gprflow bench estimate`.

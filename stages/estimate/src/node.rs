@@ -12,6 +12,7 @@ use gprflow_stage::{
 use nalgebra::{DMatrix, Vector2, Vector3};
 
 use crate::imu::ImuParams;
+use crate::incremental::IncrementalParams;
 use crate::lie::Pose3;
 use crate::online::{
     FirstStatePrior, OnlineEstimator, OnlineParams, RegistrationMeasurement, RegistrationOutcome, StateOutput,
@@ -38,6 +39,11 @@ pub struct EstimateParams {
     /// only what its factors touch; deterministic, marginal covariances. `fixed_lag`: a window
     /// of the newest states plus full re-solves when a loop closure reaches behind it.
     pub smoother: SmootherChoice,
+    /// Settings of the `incremental` smoother: relinearisation thresholds
+    /// (`relinearize_rotation_rad` 0.001, `relinearize_translation_m` 0.1,
+    /// `relinearize_velocity_mps` 0.1, `relinearize_bias` 0.1), `max_relinearized_per_update`
+    /// (32; 0: no cap) and `wildfire_threshold` (0.01).
+    pub incremental: IncrementalParams,
     /// Window of the `fixed_lag` smoother, states (default 30).
     pub lag_states: usize,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
@@ -102,6 +108,7 @@ impl Default for EstimateParams {
         Self {
             state_rate_hz: o.state_rate_hz,
             smoother: SmootherChoice::Incremental,
+            incremental: o.smoother.incremental,
             lag_states: o.smoother.lag_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
@@ -135,6 +142,7 @@ impl EstimateParams {
                     SmootherChoice::Incremental => SmootherMethod::Incremental,
                     SmootherChoice::FixedLag => SmootherMethod::FixedLag,
                 },
+                incremental: self.incremental,
                 lag_states: self.lag_states,
                 background: self.background_solves,
                 ..SmootherParams::default()
@@ -170,6 +178,16 @@ impl EstimateParams {
     fn check(&self) -> gprflow_params::Result {
         gprflow_params::positive("state_rate_hz", self.state_rate_hz)?;
         gprflow_params::at_least("lag_states", self.lag_states, 1)?;
+        let inc = &self.incremental;
+        for (key, value) in [
+            ("incremental.relinearize_rotation_rad", inc.relinearize_rotation_rad),
+            ("incremental.relinearize_translation_m", inc.relinearize_translation_m),
+            ("incremental.relinearize_velocity_mps", inc.relinearize_velocity_mps),
+            ("incremental.relinearize_bias", inc.relinearize_bias),
+        ] {
+            gprflow_params::positive(key, value)?;
+        }
+        gprflow_params::non_negative("incremental.wildfire_threshold", inc.wildfire_threshold)?;
         let positive = [
             ("acc_noise_density", self.acc_noise_density),
             ("gyro_noise_density", self.gyro_noise_density),

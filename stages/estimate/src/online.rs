@@ -683,7 +683,16 @@ impl OnlineEstimator {
     /// A solver failure.
     pub fn finish(&mut self) -> Result<()> {
         if !self.states.is_empty() {
-            self.smoother.finish(&self.graph, &mut self.values)?;
+            let lm = self.smoother.finish(&self.graph, &mut self.values)?;
+            tracing::info!(
+                states = self.states.len(),
+                factors = self.graph.len(),
+                seconds = lm.seconds,
+                iterations = lm.iterations,
+                initial_error = lm.initial_error,
+                final_error = lm.final_error,
+                "estimate: final solve of the whole graph"
+            );
         }
         Ok(())
     }

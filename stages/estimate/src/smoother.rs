@@ -1,13 +1,7 @@
-//! The incremental smoother: one update per new state, bounded work per update.
+//! The smoothers behind one interface ([`Smoother`]): the [`IncrementalSmoother`] (the
+//! default; see [`crate::incremental`]) and the fixed-lag smoother of this module.
 //!
-//! # Why a fixed-lag window plus background full re-solves, and not iSAM2
-//!
-//! iSAM2 re-eliminates the part of its Bayes tree that a new factor touches. That is cheap for
-//! odometry but a loop closure reaches back to an old state and invalidates everything on the
-//! path from there to the root: the update that carries it pays for a large re-factorisation
-//! (GTSAM's iSAM2 on the peer problem: p99 50 ms, max 93 ms at N=2000), and periodic
-//! relinearisation adds further spikes. The pipeline's contract is a bounded latency per
-//! state, so this smoother separates the two jobs:
+//! # The fixed-lag smoother
 //!
 //! - **On the critical path**, each update solves only a window of the newest
 //!   [`SmootherParams::lag_states`] states (a few Levenberg-Marquardt iterations on faer sparse
@@ -19,20 +13,15 @@
 //!   a full batch solve of the whole graph on a background thread from a snapshot (factors are
 //!   shared, so the snapshot costs one copy of the values). When it finishes, the next update
 //!   merges it: every variable of the snapshot takes the full solution and the states added
-//!   since are moved by the rigid correction of the snapshot's newest pose, as loop-closing
-//!   threads of visual SLAM systems do. A loop closure that arrives while a solve runs is
-//!   picked up by the next solve.
+//!   since are moved by the rigid correction of the snapshot's newest pose. A loop closure that
+//!   arrives while a solve runs is picked up by the next solve.
 //!
-//! The background re-solves are capped at a few iterations (they start from the current
-//! estimate, and the next loop closure continues from their result); [`FixedLagSmoother::finish`]
-//! solves to convergence. On the GTSAM peer's N = 2000 problem fed at 10 Hz, the estimate at
-//! the end of the run is within 0.1 % of the batch optimum's error (iSAM2's on the same run: 3.8x),
-//! the updates take p99 5.6 ms and the re-solves 0.26 s (p50); see the top-level README.
-//!
-//! Known limitation: states leaving the window are conditioned on, not marginalised, so the
-//! window's covariance (and [`FixedLagSmoother::newest_covariance`]) is the covariance given
-//! the older states, smaller than the true marginal. Marginalising the window's tail into a
-//! dense prior (a Schur complement at the departing state) is the step after this one.
+//! Its limits, which the incremental smoother does not have: the full re-solves cost the
+//! whole graph each (0.1-0.4 s at N = 2000), so fed faster than they finish (a recording
+//! replayed as fast as it goes) the estimate falls behind the optimum; in line
+//! (`background: false`) the run's cost grows with the square of its length; and states
+//! leaving the window are conditioned on, not marginalised, so the window's covariance is
+//! the covariance given the older states, smaller than the true marginal.
 
 use std::collections::BTreeSet;
 use std::sync::mpsc;

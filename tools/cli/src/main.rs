@@ -375,7 +375,11 @@ enum BenchCommand {
         /// Batch solve only.
         #[arg(long)]
         batch_only: bool,
-        /// Incremental smoother window, states.
+        /// Smoother of the incremental run: incremental (partial re-elimination of the whole
+        /// graph) or fixed-lag (a window plus full re-solves).
+        #[arg(long, default_value = "incremental", value_parser = ["incremental", "fixed-lag"])]
+        smoother: String,
+        /// Window of the fixed-lag smoother, states.
         #[arg(long, default_value_t = 30)]
         lag: usize,
         /// Feed the incremental run one state every 1/HZ seconds, as a live pipeline would
@@ -575,6 +579,7 @@ fn main() -> ExitCode {
                     problem,
                     lines,
                     batch_only,
+                    smoother,
                     lag,
                     pace_hz,
                     json,
@@ -588,6 +593,7 @@ fn main() -> ExitCode {
                     _ => gprflow_estimate::problem::LineMode::Off,
                 },
                 batch_only,
+                fixed_lag: smoother == "fixed-lag",
                 lag_states: lag,
                 pace_hz,
                 json,
