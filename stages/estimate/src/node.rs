@@ -87,10 +87,8 @@ pub struct EstimateParams {
     /// vehicle at rest or moving steadily), and the first state is made then; yaw and position
     /// start at 0 (default 1.0; 0: a level first state at the first sample).
     pub gravity_align_s: f64,
-    /// Publish Trajectory and LineMap snapshots every this many states at least (default 10;
-    /// 0: only at the end). The interval grows to a tenth of the states so far, so that
-    /// snapshots of a long run cost a constant per state, not one whole trajectory per ten
-    /// states.
+    /// Publish Trajectory and LineMap snapshots every this many states (default 10; 0: only
+    /// at the end). Each holds the whole trajectory: on long runs raise it.
     pub snapshot_every_states: u64,
     /// `fixed_lag` smoother: loop-closure full re-solves on a background thread (default
     /// true). `false` solves them in the update that needs one: slower, but the same input
@@ -241,8 +239,6 @@ pub struct EstimateStage {
     drops: Drops,
     /// Registrations dropped by `registration_gate_m`.
     gated_registrations: u64,
-    /// States after which the next snapshot is due.
-    next_snapshot: u64,
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -354,16 +350,16 @@ impl EstimateStage {
             gyro_bias: vec_msg(&s.bias.gyro_radps),
         };
         out.send(self.state_out, &msg)?;
-        let states = s.index + 1;
-        if self.params.snapshot_every_states > 0 && states >= self.next_snapshot {
-            self.next_snapshot = states + self.params.snapshot_every_states.max(states / 10);
+        if self.params.snapshot_every_states > 0 && (s.index + 1).is_multiple_of(self.params.snapshot_every_states) {
             self.publish_snapshots(s.stamp_ns, out)?;
         }
         Ok(())
     }
 
+    /// The whole trajectory as the estimate holds it. Mid-run it is the incremental
+    /// smoother's wildfire estimate (states far from the newest may lag by up to its
+    /// threshold); at the end, after the final solve, the best one.
     fn publish_snapshots(&mut self, stamp_ns: i64, out: &mut Outputs) -> Result<(), StageError> {
-        self.est.refresh().map_err(StageError::failed)?;
         let traj = self.est.trajectory().map_err(StageError::failed)?;
         let msg = Trajectory {
             header: Header::new(stamp_ns, "world"),
@@ -444,7 +440,6 @@ impl Stage for EstimateStage {
             est.wait_for_origin();
         }
         Ok(Self {
-            next_snapshot: params.snapshot_every_states,
             est,
             state_out: ports.output("state")?,
             trajectory_out: ports.output("trajectory")?,
