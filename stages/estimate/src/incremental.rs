@@ -989,14 +989,19 @@ mod tests {
             .between(values.pose(ids[101]).expect("pose"));
         graph.add(BetweenPose::new(ids[100], ids[101], rel, noise.clone()).expect("factor"));
         let deep = smoother.update(&graph, &mut values, &[]).expect("update");
-        assert!(deep.eliminated < 100, "{deep:?}");
+        // Its path to the root crosses every re-dissected block of at most 256 states above
+        // it (each some 30 groups deep: a few separators and a minimum-degree leaf of up to
+        // 24) and the newest, not yet re-dissected states: an eighth of the run at most,
+        // where an elimination in time order would redo all 1900 states after it.
+        assert!(deep.eliminated < 250, "{deep:?}");
         let rel = values
             .pose(ids[10])
             .expect("pose")
             .between(values.pose(ids[1990]).expect("pose"));
         graph.add(BetweenPose::new(ids[10], ids[1990], rel, noise).expect("factor"));
         let closure = smoother.update(&graph, &mut values, &[]).expect("update");
-        assert!(closure.eliminated < 100, "{closure:?}");
+        // The same for a loop closure from the newest states back to the start.
+        assert!(closure.eliminated < 250, "{closure:?}");
     }
 
     #[test]
