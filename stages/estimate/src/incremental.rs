@@ -523,13 +523,43 @@ impl IncrementalSmoother {
         let chol = match hgg.clone().cholesky() {
             Some(c) => c,
             None => {
-                // Unobservable from what is known so far (a line seen from one place): a small
-                // damping keeps the step finite.
+                // Unobservable from what is known so far (a line seen from one place), or not
+                // positive definite by round-off: information-form elimination squares the
+                // condition number, and a long IMU chain under a tight first-state prior has
+                // a wide one (GTSAM's iSAM2 needs QR on such graphs). The smallest damping
+                // that factorises keeps the step finite; it acts on this group only.
                 let scale = hgg.diagonal().amax().max(1.0);
-                let damped = hgg + DMatrix::identity(dg, dg) * (1e-9 * scale);
-                damped.cholesky().ok_or_else(|| {
-                    Error::LinearSolve(format!("group {g} is singular in the incremental elimination"))
-                })?
+                let mut damped = None;
+                for eps in [1e-12, 1e-9, 1e-6, 1e-3] {
+                    damped = (hgg.clone() + DMatrix::identity(dg, dg) * (eps * scale)).cholesky();
+                    if damped.is_some() {
+                        tracing::debug!(group = g, damping = eps * scale, "incremental: damped a group");
+                        break;
+                    }
+                }
+                match damped {
+                    Some(c) => c,
+                    None => {
+                        // Indefinite: seen on a 20-minute IMU run (eigenvalues -1e6 to 2e8),
+                        // not understood yet. Mirror the negative eigenvalues (a modified
+                        // Cholesky) so that the run goes on; the final batch solve corrects
+                        // what this step gets wrong.
+                        let eig = hgg.clone().symmetric_eigen();
+                        let floor = 1e-9 * eig.eigenvalues.amax().max(1.0);
+                        tracing::warn!(
+                            group = g,
+                            min_eigenvalue = eig.eigenvalues.min(),
+                            max_eigenvalue = eig.eigenvalues.max(),
+                            "incremental: a group's information is indefinite; its negative directions mirrored"
+                        );
+                        let fixed = eig.eigenvalues.map(|v| v.abs().max(floor));
+                        let repaired =
+                            &eig.eigenvectors * DMatrix::from_diagonal(&fixed) * eig.eigenvectors.transpose();
+                        repaired.cholesky().ok_or_else(|| {
+                            Error::LinearSolve(format!("group {g} is singular in the incremental elimination"))
+                        })?
+                    }
+                }
             }
         };
         let l = chol.l();

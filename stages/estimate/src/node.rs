@@ -35,9 +35,11 @@ pub enum SmootherChoice {
 pub struct EstimateParams {
     /// States per second (default 10).
     pub state_rate_hz: f64,
-    /// `incremental` (default): the whole graph kept eliminated, each update re-eliminating
-    /// only what its factors touch; deterministic, marginal covariances. `fixed_lag`: a window
-    /// of the newest states plus full re-solves when a loop closure reaches behind it.
+    /// `fixed_lag` (default): a window of the newest states plus full re-solves when a loop
+    /// closure reaches behind it. `incremental`: the whole graph kept eliminated, each update
+    /// re-eliminating only what its factors touch; deterministic at any feed rate, marginal
+    /// covariances; not yet the default (it diverged after 8.5 minutes of a 20.9-minute
+    /// simulated IMU run).
     pub smoother: SmootherChoice,
     /// Settings of the `incremental` smoother: relinearisation thresholds
     /// (`relinearize_rotation_rad` 0.001, `relinearize_translation_m` 0.1,
@@ -105,7 +107,7 @@ impl Default for EstimateParams {
         let o = OnlineParams::default();
         Self {
             state_rate_hz: o.state_rate_hz,
-            smoother: SmootherChoice::Incremental,
+            smoother: SmootherChoice::FixedLag,
             incremental: o.smoother.incremental,
             lag_states: o.smoother.lag_states,
             acc_noise_density: o.imu.acc_noise_density,

@@ -1,5 +1,6 @@
-//! The smoothers behind one interface ([`Smoother`]): the [`IncrementalSmoother`] (the
-//! default; see [`crate::incremental`]) and the fixed-lag smoother of this module.
+//! The smoothers behind one interface ([`Smoother`]): the fixed-lag smoother of this module
+//! (the default) and the [`IncrementalSmoother`] (see [`crate::incremental`]; opt-in until
+//! its divergence on long IMU runs is fixed).
 //!
 //! # The fixed-lag smoother
 //!
@@ -39,10 +40,12 @@ use crate::{Error, Result};
 /// Which smoother runs the updates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum SmootherMethod {
-    /// [`IncrementalSmoother`]: the whole graph, partial re-elimination (the default).
-    #[default]
+    /// [`IncrementalSmoother`]: the whole graph, partial re-elimination. Not yet the default:
+    /// on a 20.9-minute simulated IMU run its Gauss-Newton steps diverge after about 8.5
+    /// minutes (indefinite group information, then a failed run); see the crate's known gaps.
     Incremental,
-    /// [`FixedLagSmoother`]: a window of the newest states plus full re-solves.
+    /// [`FixedLagSmoother`]: a window of the newest states plus full re-solves (the default).
+    #[default]
     FixedLag,
 }
 

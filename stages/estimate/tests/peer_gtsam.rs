@@ -9,7 +9,7 @@ use std::path::Path;
 
 use gprflow_estimate::bench::{BenchOptions, run};
 use gprflow_estimate::problem::{LineMode, Problem};
-use gprflow_estimate::smoother::SmootherParams;
+use gprflow_estimate::smoother::{SmootherMethod, SmootherParams};
 
 /// Final graph errors must agree within 0.1 %.
 const ERROR_REL_TOL: f64 = 1e-3;
@@ -33,6 +33,7 @@ fn batch_and_incremental_match_gtsam() {
     assert_eq!(problem.loop_closures.len() as f64, g("loop_closures"));
 
     let smoother = SmootherParams {
+        method: SmootherMethod::Incremental,
         background: false,
         ..SmootherParams::default()
     };
