@@ -972,7 +972,11 @@ mod tests {
             let traj = est.trajectory().expect("trajectory");
             (first, traj[traj.len() - 1].2)
         };
-        let angle = |p: &Pose3| nalgebra::Rotation3::from_matrix_unchecked(p.rot).angle_to(&tilt);
+        let tilted = Pose3::new(tilt.into_inner(), Vector3::zeros());
+        let angle = |p: &Pose3| {
+            let level = Pose3::new(p.rot, Vector3::zeros());
+            tilted.between(&level).log().fixed_rows::<3>(0).norm()
+        };
         let (first, last) = run(1.0);
         // made at the end of the first second, already tilted as the platform is
         assert_eq!(first.stamp_ns, 1_000_000_000);
