@@ -142,8 +142,6 @@ pub struct IncrementalSmoother {
     changed: Vec<bool>,
     /// Variables whose step exceeds the relinearisation threshold.
     over_threshold: BTreeSet<usize>,
-    /// Per variable: in `over_threshold`.
-    is_over: Vec<bool>,
     known_factors: usize,
     // Per group.
     groups: Vec<Vec<usize>>,
@@ -157,7 +155,6 @@ pub struct IncrementalSmoother {
     next_position: u64,
     newest: Option<usize>,
     newest_cov: Option<DMatrix<f64>>,
-    states: usize,
     /// The group of every state, in order.
     state_groups: Vec<usize>,
 }
@@ -181,7 +178,7 @@ impl IncrementalSmoother {
     /// Number of states so far.
     #[must_use]
     pub fn state_count(&self) -> usize {
-        self.states
+        self.state_groups.len()
     }
 
     /// Marginal covariance `[rot x3, trans x3]` of the newest state's pose after the last
@@ -231,21 +228,19 @@ impl IncrementalSmoother {
             self.factors_of.push(Vec::new());
             self.group_of.push(usize::MAX);
             self.changed.push(false);
-            self.is_over.push(false);
         }
         let state: Vec<usize> = new_state.iter().map(|v| v.0).filter(|v| *v >= first_new).collect();
         if !state.is_empty() {
             let g = self.new_group(state);
             marked.insert(g);
             self.newest = Some(g);
-            self.states += 1;
             self.state_groups.push(g);
             // Odometry alone stacks each new state on the root: the tree above the last
             // re-dissected part is a path. Re-dissecting the newest states at doubling
             // scales (64, 128, ... states, every state log2(run / 64) times in all, blocks of
             // at most `REBALANCE_MAX`) keeps it shallow, so that a factor deep in the past
             // re-eliminates a short path even in a run without loop closures.
-            let u = self.states;
+            let u = self.state_groups.len();
             if u.is_multiple_of(REBALANCE_MIN) {
                 let k = (1usize << u.trailing_zeros()).min(REBALANCE_MAX);
                 marked.extend(self.state_groups[u - k..].iter().copied());
@@ -612,26 +607,18 @@ impl IncrementalSmoother {
             stack.extend(self.children[c].iter().rev());
         }
         report.solved += solved.len();
-        for &g in &solved {
-            for &j in &self.groups[g] {
-                self.changed[j] = false;
-            }
-        }
-        for g in solved {
-            self.publish(g, values)?;
-        }
-        Ok(())
+        self.publish(&solved, values)
     }
 
-    /// Writes the estimates of the group `g` to `values` and notes what needs relinearising.
-    fn publish(&mut self, g: usize, values: &mut Values) -> Result<()> {
-        for i in 0..self.groups[g].len() {
-            let j = self.groups[g][i];
-            values.set(VarId(j), self.theta.get(VarId(j))?.retract(self.delta[j].as_view()))?;
-            let over = self.needs_relinearisation(j)?;
-            if over != self.is_over[j] {
-                self.is_over[j] = over;
-                if over {
+    /// Writes the estimates of the groups `solved` (whose steps were just recomputed) to
+    /// `values`, clears their `changed` marks and notes what needs relinearising.
+    fn publish(&mut self, solved: &[usize], values: &mut Values) -> Result<()> {
+        for &g in solved {
+            for i in 0..self.groups[g].len() {
+                let j = self.groups[g][i];
+                self.changed[j] = false;
+                values.set(VarId(j), self.theta.get(VarId(j))?.retract(self.delta[j].as_view()))?;
+                if self.needs_relinearisation(j)? {
                     self.over_threshold.insert(j);
                 } else {
                     self.over_threshold.remove(&j);
@@ -654,26 +641,14 @@ impl IncrementalSmoother {
         for &g in &order {
             self.solve_group(g)?;
         }
-        for &g in &order {
-            for &j in &self.groups[g] {
-                self.changed[j] = false;
-            }
-        }
-        for g in order {
-            self.publish(g, values)?;
-        }
-        Ok(())
+        self.publish(&order, values)
     }
 
     /// The variables to relinearise in this update (taken out of `over_threshold`).
     fn relinearisation_set(&mut self) -> Result<Vec<usize>> {
         let cap = self.params.max_relinearized_per_update;
         if cap == 0 || self.over_threshold.len() <= cap {
-            let all: Vec<usize> = std::mem::take(&mut self.over_threshold).into_iter().collect();
-            for &j in &all {
-                self.is_over[j] = false;
-            }
-            return Ok(all);
+            return Ok(std::mem::take(&mut self.over_threshold).into_iter().collect());
         }
         let mut by_excess: Vec<(f64, usize)> = self
             .over_threshold
@@ -685,7 +660,6 @@ impl IncrementalSmoother {
         chosen.sort_unstable();
         for j in &chosen {
             self.over_threshold.remove(j);
-            self.is_over[*j] = false;
         }
         Ok(chosen)
     }

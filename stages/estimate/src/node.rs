@@ -19,16 +19,6 @@ use crate::online::{
 };
 use crate::smoother::{SmootherMethod, SmootherParams};
 
-/// Which smoother the `estimate` stage runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum SmootherChoice {
-    /// [`crate::incremental::IncrementalSmoother`].
-    Incremental,
-    /// [`crate::smoother::FixedLagSmoother`].
-    FixedLag,
-}
-
 /// Parameters of the `estimate` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
@@ -40,7 +30,7 @@ pub struct EstimateParams {
     /// re-eliminating only what its factors touch; deterministic at any feed rate, marginal
     /// covariances; not yet the default (it diverged after 8.5 minutes of a 20.9-minute
     /// simulated IMU run).
-    pub smoother: SmootherChoice,
+    pub smoother: SmootherMethod,
     /// Settings of the `incremental` smoother: relinearisation thresholds
     /// (`relinearize_rotation_rad` 0.001, `relinearize_translation_m` 0.1,
     /// `relinearize_velocity_mps` 0.1, `relinearize_bias` 0.1), `max_relinearized_per_update`
@@ -107,7 +97,7 @@ impl Default for EstimateParams {
         let o = OnlineParams::default();
         Self {
             state_rate_hz: o.state_rate_hz,
-            smoother: SmootherChoice::FixedLag,
+            smoother: o.smoother.method,
             incremental: o.smoother.incremental,
             lag_states: o.smoother.lag_states,
             acc_noise_density: o.imu.acc_noise_density,
@@ -138,10 +128,7 @@ impl EstimateParams {
         OnlineParams {
             state_rate_hz: self.state_rate_hz,
             smoother: SmootherParams {
-                method: match self.smoother {
-                    SmootherChoice::Incremental => SmootherMethod::Incremental,
-                    SmootherChoice::FixedLag => SmootherMethod::FixedLag,
-                },
+                method: self.smoother,
                 incremental: self.incremental,
                 lag_states: self.lag_states,
                 background: self.background_solves,

@@ -600,18 +600,9 @@ impl OnlineEstimator {
             .smoother
             .update(&self.graph, &mut self.values, &[keys.pose, keys.velocity, keys.bias])?;
         let update_s = start.elapsed().as_secs_f64();
-        let inc = report.incremental.unwrap_or_default();
-        tracing::trace!(
-            state = i,
-            update_ms = update_s * 1e3,
-            eliminated = inc.eliminated,
-            relinearized = inc.relinearized,
-            solved = inc.solved,
-            max_separator = inc.max_separator,
-            "estimate: update"
-        );
         if update_s * self.params.state_rate_hz > 1.0 {
             self.late_updates += 1;
+            let inc = report.incremental.unwrap_or_default();
             tracing::warn!(
                 state = i,
                 update_ms = update_s * 1e3,

@@ -37,8 +37,11 @@ use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covarian
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
-/// Which smoother runs the updates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// Which smoother runs the updates (the `estimate` stage's `smoother` parameter:
+/// `incremental` or `fixed_lag`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[cfg_attr(feature = "node", derive(schemars::JsonSchema))]
+#[serde(rename_all = "snake_case")]
 pub enum SmootherMethod {
     /// [`IncrementalSmoother`]: the whole graph, partial re-elimination. Not yet the default:
     /// on a 20.9-minute simulated IMU run its Gauss-Newton steps diverge after about 8.5
