@@ -71,15 +71,25 @@ pub(crate) fn check(
 ) -> Result<Graph, GraphError> {
     let vars = resolve_vars(&decl.inputs, overrides, source)?;
 
-    let mut drafts = Vec::with_capacity(decl.nodes.0.len());
+    let mut running = Vec::with_capacity(decl.nodes.0.len());
+    let mut off = Vec::new();
     for (name, node) in &decl.nodes.0 {
+        if runs(name, node, &vars, source)? {
+            running.push((name, node));
+        } else {
+            off.push(name.as_str());
+        }
+    }
+
+    let mut drafts = Vec::with_capacity(running.len());
+    for (name, node) in &running {
         drafts.push(check_node(name, node, &vars, source, catalog)?);
     }
 
     let mut nodes = Vec::with_capacity(drafts.len());
-    for (draft, (_, node)) in drafts.iter().zip(&decl.nodes.0) {
+    for (draft, (_, node)) in drafts.iter().zip(&running) {
         nodes.push(Node {
-            inputs: check_inputs(draft, node, &drafts, source)?,
+            inputs: check_inputs(draft, node, &drafts, &off, source)?,
             name: draft.name.clone(),
             kind: draft.kind.clone(),
             outputs: draft.outputs.clone(),
@@ -88,7 +98,13 @@ pub(crate) fn check(
     }
 
     let hosts = match decl.hosts {
-        Some(hosts) => check_hosts(hosts.0, &nodes, &decl.name, source)?,
+        Some(mut hosts) => {
+            // nodes that do not run are on no host
+            for (_, host) in &mut hosts.0 {
+                host.nodes.retain(|n| !off.contains(&n.as_str()));
+            }
+            check_hosts(hosts.0, &nodes, &decl.name, source)?
+        }
         None => Vec::new(),
     };
     if let Some(host) = decl.record.as_ref().and_then(|r| r.host.as_ref())
@@ -157,6 +173,24 @@ fn var_error(
             at,
             text: text.to_owned(),
         },
+    }
+}
+
+/// Whether a node runs: its `when`, with variables substituted, is `true` (or absent) or
+/// `false`.
+fn runs(name: &str, node: &NodeDecl, vars: &BTreeMap<String, String>, source: &Source<'_>) -> Result<bool, GraphError> {
+    let Some(when) = &node.when else {
+        return Ok(true);
+    };
+    let path = key_path(&["nodes", name, "when"]);
+    let value = vars::substitute(when, vars).map_err(|problem| var_error(problem, &path, when, vars, source))?;
+    match value.trim() {
+        "true" => Ok(true),
+        "false" => Ok(false),
+        other => Err(GraphError::Structure {
+            at: source.at_value(&path),
+            message: format!("`when` must be true or false, not `{other}`"),
+        }),
     }
 }
 
@@ -276,6 +310,7 @@ fn check_inputs(
     draft: &Draft<'_>,
     node: &NodeDecl,
     drafts: &[Draft<'_>],
+    off: &[&str],
     source: &Source<'_>,
 ) -> Result<Vec<Input>, GraphError> {
     // The stage and its inputs, when it declares a fixed set (exec nodes and `Any` take any).
@@ -332,6 +367,12 @@ fn check_inputs(
             })
             .transpose()?;
 
+        if off.contains(&from_node) {
+            return Err(GraphError::Structure {
+                at: source.at_value(&reference_path),
+                message: format!("`{reference}` comes from node `{from_node}`, whose `when` is false"),
+            });
+        }
         let producer = drafts
             .iter()
             .find(|d| d.name == from_node)

@@ -53,6 +53,9 @@ pub(crate) struct NodeDecl {
     pub outputs: Option<OrderedMap<String>>,
     /// Parameters of the stage; see the stage's own schema.
     pub params: Option<serde_json::Map<String, serde_json::Value>>,
+    /// Whether the node runs: `true` or `false`, usually a variable (`when: "${foxglove}"`).
+    /// A node that does not run is left out of the graph, and no other node may read from it.
+    pub when: Option<String>,
 }
 
 /// Where an input comes from.

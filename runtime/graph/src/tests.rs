@@ -577,7 +577,7 @@ fn structure_errors() {
     );
     assert_eq!(
         error.to_string(),
-        "t.yaml:5:5: nodes.gen.inptus: unknown field `inptus`, expected one of stage, exec, inputs, outputs, params"
+        "t.yaml:5:5: nodes.gen.inptus: unknown field `inptus`, expected one of stage, exec, inputs, outputs, params, when"
     );
     let error = assert_kind(
         "name: t\nnodes:\n  gen:\n    exec: ./x\n    inputs: { a: { form: gen/x } }\n",
@@ -1015,4 +1015,51 @@ fn fixtures_match_their_expectations() {
             }
         }
     }
+}
+
+// ---------------------------------------------------------------- nodes that run when asked
+
+const WITH_VIEWER: &str = r#"name: t
+inputs: { viewer: "false" }
+nodes:
+  gen:    { stage: toy_source }
+  viewer: { stage: toy_gain, inputs: { trace: gen/trace }, when: "${viewer}" }
+hosts:
+  robot: { nodes: [gen, viewer] }
+"#;
+
+#[test]
+fn a_node_whose_when_is_false_is_left_out() {
+    let off = graph_of(WITH_VIEWER);
+    let names: Vec<&str> = off.nodes.iter().map(|n| n.name.as_str()).collect();
+    assert_eq!(names, ["gen"]);
+    assert_eq!(off.hosts[0].nodes, ["gen"], "and placed on no host");
+    let on = parse_with(WITH_VIEWER, &[("viewer", "true")]).expect("graph");
+    let names: Vec<&str> = on.nodes.iter().map(|n| n.name.as_str()).collect();
+    assert_eq!(names, ["gen", "viewer"]);
+}
+
+#[test]
+fn reading_from_a_node_that_does_not_run_is_an_error_naming_it() {
+    let text = with_nodes(
+        "  gen:  { stage: toy_source, when: \"false\" }\n  gain: { stage: toy_gain, inputs: { trace: gen/trace } }\n",
+    );
+    let error = error_of(&text);
+    let message = error.to_string();
+    assert!(message.contains("t.yaml:4:"), "{message}");
+    assert!(
+        message.contains("`gen/trace` comes from node `gen`, whose `when` is false"),
+        "{message}"
+    );
+}
+
+#[test]
+fn when_must_be_true_or_false() {
+    let error = parse_with(WITH_VIEWER, &[("viewer", "yes please")]).expect_err("not a boolean");
+    let message = error.to_string();
+    assert!(message.contains("t.yaml:5:"), "{message}");
+    assert!(
+        message.contains("`when` must be true or false, not `yes please`"),
+        "{message}"
+    );
 }
