@@ -244,6 +244,20 @@ fn python_mcap_reader_decodes_every_message_type() {
                 ..Image::default()
             }),
         ),
+        (
+            "/t/path",
+            Path::TYPE_NAME,
+            encode(&Path {
+                header: h(16),
+                poses: vec![
+                    PoseStamped { header: h(16), pose },
+                    PoseStamped {
+                        header: h(17),
+                        pose: Pose::default(),
+                    },
+                ],
+            }),
+        ),
     ];
     assert_eq!(
         msgs.len(),
@@ -261,7 +275,7 @@ fn python_mcap_reader_decodes_every_message_type() {
         }
         w.finish().expect("finish");
     }
-    peer_check(&rec, "17 messages on 17 topics");
+    peer_check(&rec, "18 messages on 18 topics");
 }
 
 #[test]

@@ -2,8 +2,9 @@
 //! handle topics whose type is known only at run time (inspect, diff, the recorder).
 
 use super::{
-    CdrDecode, Image, Imu, LineMap, LineObservation, MapFix, Message, MsgError, Odometry, PoseStamped, Registration,
-    RegistrationAttempt, RegistrationCheck, StateEstimate, Submap, Sweep, Trace, Trajectory, WheelOdometry, decode,
+    CdrDecode, Image, Imu, LineMap, LineObservation, MapFix, Message, MsgError, Odometry, Path, PoseStamped,
+    Registration, RegistrationAttempt, RegistrationCheck, StateEstimate, Submap, Sweep, Trace, Trajectory,
+    WheelOdometry, decode,
 };
 
 /// A message type known to gprflow.
@@ -65,6 +66,7 @@ static TYPES: &[MessageType] = registry!(
     PoseStamped,
     Odometry,
     Image<'_>,
+    Path,
 );
 
 /// All message types.

@@ -168,7 +168,15 @@ message! {
     }
 }
 
-stamped!(PoseStamped, Imu, Odometry, Image<'a>);
+message! {
+    /// `nav_msgs/Path`: poses in order (a trajectory as Foxglove's 3D panel draws it).
+    pub struct Path = "nav_msgs/msg/Path" {
+        pub header: Header,
+        pub poses: Vec<PoseStamped>,
+    }
+}
+
+stamped!(PoseStamped, Imu, Odometry, Image<'a>, Path);
 
 /// A 6x6 covariance, row-major (`float64[36]` on the wire).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
