@@ -27,6 +27,7 @@ use gprflow_lines::node::LinesStage;
 use gprflow_register::node::RegisterStage;
 use gprflow_stage_toy::{ToyGain, ToySource};
 use gprflow_submap::node::SubmapStage;
+use gprflow_viz::VizStage;
 
 /// An error and its causes on one line, `outer: cause: ...`, leaving out a cause whose text
 /// ends the message of the error it explains (error types that name their source in their own
@@ -78,6 +79,7 @@ const STAGES: &[Kind] = &[
     kind::<LgprTrackStage>(),
     kind::<RegisterStage>(),
     kind::<LinesStage>(),
+    kind::<VizStage>(),
     kind::<RecordStage>(),
     kind::<ReplayStage>(),
 ];
