@@ -22,6 +22,10 @@ pub struct LineObservationError {
     pub unmatched: usize,
     /// Forward-distance error of the matched ones (observed - true), m.
     pub forward_distance: Option<Stats>,
+    /// Each matched observation's stamp (ns) and forward-distance error (m), in file order,
+    /// for plots.
+    #[serde(skip)]
+    pub samples: Vec<(i64, f64)>,
 }
 
 /// An observation within this of a true line's forward distance is a detection of it, m.
@@ -36,7 +40,7 @@ pub fn line_observation_error(
     max_gap_ns: i64,
 ) -> Option<LineObservationError> {
     let mut topic = None;
-    let (mut observations, mut errors) = (0usize, Vec::new());
+    let (mut observations, mut errors, mut samples) = (0usize, Vec::new(), Vec::new());
     run.scan(|m| {
         if m.msg_type != LineObservation::ROS_NAME {
             return;
@@ -64,6 +68,7 @@ pub fn line_observation_error(
             .min_by(|a, b| a.abs().total_cmp(&b.abs()));
         if let Some(e) = nearest.filter(|e| e.abs() <= LINE_MATCH_GATE_M) {
             errors.push(e);
+            samples.push((o.header.stamp.to_ns(), e));
         }
     });
     Some(LineObservationError {
@@ -72,6 +77,7 @@ pub fn line_observation_error(
         matched: errors.len(),
         unmatched: observations - errors.len(),
         forward_distance: Stats::of(&errors),
+        samples,
     })
 }
 
@@ -85,13 +91,17 @@ pub struct RegistrationError {
     pub along_track: Stats,
     /// Error of the full relative translation, m.
     pub translation: Stats,
+    /// Each registration's query stamp (ns) and along-track error (m), in file order, for
+    /// plots.
+    #[serde(skip)]
+    pub samples: Vec<(i64, f64)>,
 }
 
 /// The error of `run`'s registrations against the truth's relative poses (poses interpolated
 /// across gaps up to `max_gap_ns`); `None` when no registration has the truth at both stamps.
 pub fn registration_error(run: &Recording, truth: &Trajectory, max_gap_ns: i64) -> Option<RegistrationError> {
     let mut topic = String::new();
-    let (mut along, mut full) = (Vec::new(), Vec::new());
+    let (mut along, mut full, mut samples) = (Vec::new(), Vec::new(), Vec::new());
     run.scan(|m| {
         if m.msg_type != Registration::ROS_NAME {
             return;
@@ -108,6 +118,7 @@ pub fn registration_error(run: &Recording, truth: &Trajectory, max_gap_ns: i64) 
         topic = m.topic.to_owned();
         let rel = a.inverse() * b;
         along.push(r.along_track_m - rel.translation.vector.x);
+        samples.push((r.query_stamp.to_ns(), r.along_track_m - rel.translation.vector.x));
         let p = &r.reference_from_query.position;
         let t = rel.translation.vector;
         full.push(((p.x - t.x).powi(2) + (p.y - t.y).powi(2) + (p.z - t.z).powi(2)).sqrt());
@@ -116,6 +127,7 @@ pub fn registration_error(run: &Recording, truth: &Trajectory, max_gap_ns: i64) 
         topic,
         along_track: Stats::of(&along)?,
         translation: Stats::of(&full)?,
+        samples,
     })
 }
 

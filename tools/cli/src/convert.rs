@@ -7,10 +7,37 @@ use std::io::Write as _;
 use std::path::Path;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use gprflow::record::{Recorder, RunMetadata};
 use gprflow_ingest::SourceFormat;
 use gprflow_ingest::load::{LoadOptions, Port, load};
+
+/// What `gprflow convert` writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OutputFormat {
+    /// An MCAP recording (from a radar file or another recording).
+    Mcap,
+    /// A TUM trajectory file (from a recording's pose topic).
+    Tum,
+}
+
+/// The output format: `to` when given (`mcap` or `tum`), else from `output`'s extension
+/// (`.mcap`; `.tum` or `.txt`).
+///
+/// # Errors
+/// Neither says which.
+pub fn output_format(to: Option<&str>, output: &Path) -> Result<OutputFormat> {
+    let ext = output.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    match (to, ext.as_deref()) {
+        (Some("mcap"), _) | (None, Some("mcap")) => Ok(OutputFormat::Mcap),
+        (Some("tum"), _) | (None, Some("tum" | "txt")) => Ok(OutputFormat::Tum),
+        (Some(other), _) => bail!("--to {other}: not an output format (mcap or tum)"),
+        (None, _) => bail!(
+            "{}: cannot tell the output format from the extension (.mcap, .tum or .txt); give --to mcap or --to tum",
+            output.display()
+        ),
+    }
+}
 
 /// Writes `input` as an MCAP recording at `output`: traces on `/gpr/trace`, sweeps on
 /// `/lgpr/sweep`, IMU on `/imu/data`, wheel on `/wheel/odometry`, truth on `/truth/pose`.

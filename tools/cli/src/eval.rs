@@ -57,6 +57,8 @@ pub struct EvalArgs {
     pub plot: Option<PathBuf>,
     /// More pose topics of the run to draw (odometry, another estimator).
     pub also: Vec<String>,
+    /// Other runs to evaluate and draw beside it, `FILE` or `LABEL=FILE`.
+    pub compare: Vec<String>,
 }
 
 /// Picks the estimate among a recording's pose topics: the last trajectory snapshot, else
@@ -132,17 +134,188 @@ pub struct EvalReport {
     pub attempts: Option<AttemptReport>,
     /// The estimator's registration checks (its `diagnostics` output), against the truth.
     pub registration_checks: Option<CheckReport>,
+    /// The runs given with `--compare`, evaluated alike.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub compared: Vec<Compared>,
+}
+
+/// A run evaluated beside the main one (`--compare`).
+#[derive(Debug, Clone, Serialize)]
+pub struct Compared {
+    /// Its label (the file's stem unless given).
+    pub label: String,
+    /// Its report.
+    pub report: EvalReport,
+}
+
+/// What one run's evaluation leaves for the pictures.
+struct Drawn {
+    topic: String,
+    truth: Trajectory,
+    associated: eval::Associated,
+    along: Vec<f64>,
+    cross: Vec<f64>,
+}
+
+/// `LABEL=FILE` or `FILE` (labelled by its stem).
+fn compare_spec(spec: &str) -> (String, PathBuf) {
+    match spec.split_once('=') {
+        Some((label, file)) if !label.is_empty() && !label.contains('/') => (label.to_owned(), PathBuf::from(file)),
+        _ => {
+            let path = PathBuf::from(spec);
+            let label = path
+                .file_stem()
+                .map_or_else(|| spec.to_owned(), |s| s.to_string_lossy().into_owned());
+            (label, path)
+        }
+    }
 }
 
 pub(crate) fn topic_name(t: &str) -> String {
     format!("/{}", t.trim_start_matches('/'))
 }
 
-/// Evaluates a run against ground truth.
+/// Evaluates a run against ground truth, and the runs to compare it with; draws them when
+/// asked.
 ///
 /// # Errors
-/// Unreadable recordings, missing topics (named), no overlap with the truth.
+/// Unreadable recordings, missing topics (named), no overlap with the truth, unwritable
+/// pictures.
 pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
+    let (mut report, drawn) = evaluate_one(args)?;
+    let mut others = Vec::with_capacity(args.compare.len());
+    for spec in &args.compare {
+        let (label, run) = compare_spec(spec);
+        let one = EvalArgs {
+            run,
+            topic: None,
+            write_tum: None,
+            plot: None,
+            also: Vec::new(),
+            compare: Vec::new(),
+            ..args.clone()
+        };
+        let (r, d) = evaluate_one(&one).with_context(|| format!("--compare {spec}"))?;
+        report.compared.push(Compared {
+            label: label.clone(),
+            report: r,
+        });
+        others.push((label, d));
+    }
+    if let Some(png) = &args.plot {
+        draw(args, png, &report, &drawn, &others)?;
+    }
+    Ok(report)
+}
+
+/// Draws the run (and the compared ones) into `png`, and next to it `STEM-registration.png`
+/// and `STEM-lines.png` when the runs hold registrations or line observations.
+fn draw(args: &EvalArgs, png: &Path, report: &EvalReport, main: &Drawn, others: &[(String, Drawn)]) -> Result<()> {
+    let run = Recording::open(&args.run)?;
+    let truth_topic = topic_name(&args.truth_topic);
+    let truth_rec = Recording::open(args.truth.as_ref().unwrap_or(&args.run))?;
+    let hough = |m: Option<(String, Vec<HoughLine>)>| {
+        m.map(|(_, l)| l.iter().map(|h| (h.rho_m, h.theta_rad)).collect())
+            .unwrap_or_default()
+    };
+    let xy = |poses: &[gprflow::eval::Pose]| -> Vec<(f64, f64)> {
+        poses
+            .iter()
+            .map(|p| (p.translation.vector.x, p.translation.vector.y))
+            .collect()
+    };
+    let t0 = main.associated.stamps_ns[0];
+    let seconds = |stamps: &[i64]| -> Vec<f64> { stamps.iter().map(|s| (s - t0) as f64 * 1e-9).collect() };
+    let track = |label: String, d: &Drawn| crate::plot::RunTrack {
+        label,
+        xy: xy(&d.associated.estimate),
+        truth_xy: xy(&d.associated.truth),
+        seconds: seconds(&d.associated.stamps_ns),
+    };
+    let main_label = args.run.file_stem().map_or_else(
+        || main.topic.clone(),
+        |s| format!("{} {}", s.to_string_lossy(), main.topic),
+    );
+    let mut runs = vec![track(main_label.clone(), main)];
+    runs.extend(others.iter().map(|(label, d)| track(format!("{label} {}", d.topic), d)));
+    let mut extra = Vec::new();
+    for topic in &args.also {
+        let t = Trajectory::from_recording(&run, &topic_name(topic))?;
+        extra.push(crate::plot::Series {
+            label: topic_name(topic),
+            points: xy(&t.poses),
+        });
+    }
+    let main_seconds = seconds(&main.associated.stamps_ns);
+    let over_time = |label: &str, v: &[f64]| crate::plot::Series {
+        label: format!("{label} of {main_label}"),
+        points: main_seconds.iter().copied().zip(v.iter().copied()).collect(),
+    };
+    crate::plot::trajectory_figure(
+        png,
+        &crate::plot::TrajectoryFigure {
+            title: &format!("{} against the truth {truth_topic}", args.run.display()),
+            truth: crate::plot::Series {
+                label: format!("truth {truth_topic}"),
+                points: xy(&main.truth.poses),
+            },
+            runs,
+            extra,
+            along_cross: Some((
+                over_time("along track", &main.along),
+                over_time("cross track", &main.cross),
+            )),
+            lines: crate::plot::Lines {
+                truth: hough(last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC))),
+                estimate: hough(last_line_map(&run, None)),
+            },
+        },
+    )?;
+    // registrations and line observations, each run's as one series
+    let mut reports: Vec<(&str, &EvalReport)> = vec![(&main_label, report)];
+    reports.extend(report.compared.iter().map(|c| (c.label.as_str(), &c.report)));
+    type Samples<'r> = Option<&'r [(i64, f64)]>;
+    let series = |pick: &dyn Fn(&EvalReport) -> Samples<'_>| -> Vec<crate::plot::Series> {
+        reports
+            .iter()
+            .filter_map(|(label, r)| {
+                let samples = pick(r).filter(|s| !s.is_empty())?;
+                Some(crate::plot::Series {
+                    label: (*label).to_owned(),
+                    points: samples.iter().map(|&(t, e)| ((t - t0) as f64 * 1e-9, e)).collect(),
+                })
+            })
+            .collect()
+    };
+    let beside = |suffix: &str| {
+        let stem = png
+            .file_stem()
+            .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
+        png.with_file_name(format!("{stem}-{suffix}.png"))
+    };
+    let registrations = series(&|r| r.registration.as_ref().map(|g| g.samples.as_slice()));
+    if !registrations.is_empty() {
+        crate::plot::error_figure(
+            &beside("registration"),
+            "registrations against the truth's relative motion",
+            "along-track error (m)",
+            &registrations,
+        )?;
+    }
+    let observations = series(&|r| r.line_observations.as_ref().map(|o| o.samples.as_slice()));
+    if !observations.is_empty() {
+        crate::plot::error_figure(
+            &beside("lines"),
+            "line observations against the true lines",
+            "forward-distance error (m)",
+            &observations,
+        )?;
+    }
+    Ok(())
+}
+
+/// Evaluates one run.
+fn evaluate_one(args: &EvalArgs) -> Result<(EvalReport, Drawn)> {
     let run = Recording::open(&args.run)?;
     let truth_rec = match &args.truth {
         Some(p) => Recording::open(p)?,
@@ -176,84 +349,17 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
             std::fs::write(&path, eval::write_tum(&t)).with_context(|| format!("{}: cannot write", path.display()))?;
         }
     }
-    let lines = match (
-        last_line_map(&run, None),
-        last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC)),
-    ) {
-        (Some((_, est)), Some((_, tru))) => eval::line_error(&est, &tru),
+    let true_lines = last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC));
+    let lines = match (last_line_map(&run, None), &true_lines) {
+        (Some((_, est)), Some((_, tru))) => eval::line_error(&est, tru),
         _ => None,
     };
     let (along, cross) = eval::track_errors(&a);
-    let estimated_lines = last_line_map(&run, None);
-    let true_lines = last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC));
-    if let Some(png) = &args.plot {
-        let hough = |m: &Option<(String, Vec<HoughLine>)>| {
-            m.as_ref()
-                .map(|(_, l)| l.iter().map(|h| (h.rho_m, h.theta_rad)).collect())
-                .unwrap_or_default()
-        };
-        let plot_lines = crate::plot::Lines {
-            truth: hough(&true_lines),
-            estimate: hough(&estimated_lines),
-        };
-        let xy = |poses: &[gprflow::eval::Pose]| {
-            poses
-                .iter()
-                .map(|p| (p.translation.vector.x, p.translation.vector.y))
-                .collect()
-        };
-        let t0 = a.stamps_ns[0];
-        let seconds: Vec<f64> = a.stamps_ns.iter().map(|s| (s - t0) as f64 * 1e-9).collect();
-        let over_time = |v: Vec<f64>| seconds.iter().copied().zip(v).collect();
-        let position_error: Vec<f64> = a
-            .estimate
-            .iter()
-            .zip(&a.truth)
-            .map(|(e, t)| (e.translation.vector - t.translation.vector).norm())
-            .collect();
-        let mut trajectories = vec![
-            crate::plot::Series {
-                label: format!("truth {truth_topic}"),
-                points: xy(&truth.poses),
-            },
-            crate::plot::Series {
-                label: format!("estimate {topic}"),
-                points: xy(&a.estimate),
-            },
-        ];
-        for extra in &args.also {
-            let t = Trajectory::from_recording(&run, &topic_name(extra))?;
-            trajectories.push(crate::plot::Series {
-                label: topic_name(extra),
-                points: xy(&t.poses),
-            });
-        }
-        crate::plot::trajectory_and_error(
-            png,
-            &format!("{} against {}", topic, truth_topic),
-            &trajectories,
-            &plot_lines,
-            &[
-                crate::plot::Series {
-                    label: "position error (3-D)".into(),
-                    points: over_time(position_error),
-                },
-                crate::plot::Series {
-                    label: "along track".into(),
-                    points: over_time(along.clone()),
-                },
-                crate::plot::Series {
-                    label: "cross track".into(),
-                    points: over_time(cross.clone()),
-                },
-            ],
-        )?;
-    }
     let registration = registration_error(&run, &truth, max_gap_ns);
     let line_observations = true_lines
         .as_ref()
         .and_then(|(_, l)| line_observation_error(&run, &truth, l, max_gap_ns));
-    Ok(EvalReport {
+    let report = EvalReport {
         estimate: format!("{} {topic}", args.run.display()),
         truth: format!("{} {truth_topic}", truth_rec.path().display()),
         estimate_poses: estimate.len(),
@@ -270,7 +376,18 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
         line_observations,
         attempts: attempt_report(&run, &truth, max_gap_ns, ATTEMPT_TOLERANCE_M),
         registration_checks: check_report(&run, &truth, max_gap_ns, CHECK_TOLERANCE_M),
-    })
+        compared: Vec::new(),
+    };
+    Ok((
+        report,
+        Drawn {
+            topic,
+            truth,
+            associated: a,
+            along,
+            cross,
+        },
+    ))
 }
 
 /// The diagnostics topics' summaries, as text lines (the same in both formats).
@@ -335,6 +452,16 @@ fn stats_row(name: &str, s: &Option<Stats>, markdown: bool) -> String {
     }
 }
 
+/// The main run and the compared ones, labelled, for the comparison table.
+fn compared_rows(r: &EvalReport) -> Vec<(String, &EvalReport)> {
+    let main = Path::new(r.estimate.split(' ').next().unwrap_or_default())
+        .file_stem()
+        .map_or_else(|| "run".to_owned(), |s| s.to_string_lossy().into_owned());
+    std::iter::once((main, r))
+        .chain(r.compared.iter().map(|c| (c.label.clone(), &c.report)))
+        .collect()
+}
+
 /// Runs `gprflow eval`.
 ///
 /// # Errors
@@ -386,6 +513,23 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             if !diagnostics.is_empty() {
                 writeln!(out, "\n```\n{}\n```", diagnostics.join("\n"))?;
             }
+            if !r.compared.is_empty() {
+                writeln!(
+                    out,
+                    "\n| run | ATE RMSE (m) | ATE aligned RMSE (m) | along-track RMSE (m) | cross-track RMSE (m) |\n|---|---:|---:|---:|---:|"
+                )?;
+                for (label, c) in compared_rows(&r) {
+                    let cell = |s: &Option<Stats>| s.as_ref().map_or("-".to_owned(), |s| format!("{:.4}", s.rmse));
+                    writeln!(
+                        out,
+                        "| {label} | {} | {} | {} | {} |",
+                        cell(&c.ate),
+                        cell(&c.ate_aligned),
+                        cell(&c.along_track),
+                        cell(&c.cross_track)
+                    )?;
+                }
+            }
         }
         ReportFormat::Text => {
             writeln!(out, "estimate  {} ({} poses)", r.estimate, r.estimate_poses)?;
@@ -425,6 +569,24 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
             }
             for line in diagnostics_summary(&r) {
                 writeln!(out, "{line}")?;
+            }
+            if !r.compared.is_empty() {
+                writeln!(
+                    out,
+                    "\n{:<28} {:>9} {:>12} {:>11} {:>11}   (RMSE, m)",
+                    "run", "ATE", "ATE aligned", "along", "cross"
+                )?;
+                for (label, c) in compared_rows(&r) {
+                    let cell = |s: &Option<Stats>| s.as_ref().map_or("-".to_owned(), |s| format!("{:.4}", s.rmse));
+                    writeln!(
+                        out,
+                        "{label:<28} {:>9} {:>12} {:>11} {:>11}",
+                        cell(&c.ate),
+                        cell(&c.ate_aligned),
+                        cell(&c.along_track),
+                        cell(&c.cross_track)
+                    )?;
+                }
             }
         }
     }

@@ -48,10 +48,15 @@ impl From<InputFormat> for gprflow_ingest::SourceFormat {
 enum Command {
     /// Run a graph: one process per node, optionally recorded.
     ///
-    /// Example: gprflow launch graphs/toy.yaml --set count=500 --record out.mcap
+    /// Examples:
+    ///   gprflow launch graphs/toy.yaml --set count=500 -o out/toy.mcap
+    ///   gprflow launch graphs/localize.yaml -o out/loc.mcap --report out/loc-report.json
+    ///   gprflow launch graphs/odometry.yaml --set recording=recordings/sim/basement-forward_backward.mcap -o out/odometry.mcap
+    ///   gprflow launch graphs/localize.yaml --dry-run
     ///
-    /// Across machines, each runs its share: gprflow launch graphs/toy-hosts.yaml --host robot
-    /// (and --host base --record out.mcap on the host that records)
+    /// Across machines, each runs its share: `gprflow launch graphs/toy-hosts.yaml --host robot`
+    /// (and `--host base -o out.mcap` on the host that records).
+    #[command(verbatim_doc_comment)]
     Launch {
         /// Graph file (YAML).
         graph: PathBuf,
@@ -59,7 +64,7 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
         /// Record the graph's topics to this MCAP file.
-        #[arg(long)]
+        #[arg(short = 'o', long, visible_alias = "output", value_name = "MCAP")]
         record: Option<PathBuf>,
         /// Run only this host's share of the graph; topics to and from other hosts travel
         /// over zenoh as the graph's `hosts:` section says.
@@ -82,6 +87,7 @@ enum Command {
     /// Run one stage as this process (the launcher uses it).
     ///
     /// Example: gprflow stage toy_gain --spec /tmp/gprflow-1234/gain.json
+    #[command(verbatim_doc_comment)]
     Stage {
         /// Stage kind.
         kind: String,
@@ -91,7 +97,10 @@ enum Command {
     },
     /// Show a recording's topics, types, counts, rates and time span.
     ///
-    /// Example: gprflow inspect recordings/toy.mcap
+    /// Examples:
+    ///   gprflow inspect recordings/toy.mcap
+    ///   gprflow inspect recordings/sim/basement-forward_backward.mcap --json
+    #[command(verbatim_doc_comment)]
     Inspect {
         /// MCAP file.
         file: PathBuf,
@@ -104,7 +113,9 @@ enum Command {
     },
     /// Rewrite a recording cut off mid-write into a complete file.
     ///
-    /// Example: gprflow recover crashed.mcap -o recovered.mcap
+    /// Example (a complete file is copied as it is):
+    ///   gprflow recover recordings/toy.mcap -o out/recovered.mcap
+    #[command(verbatim_doc_comment)]
     Recover {
         /// The damaged MCAP file.
         file: PathBuf,
@@ -115,10 +126,14 @@ enum Command {
     /// List the stages this build knows, with their ports.
     ///
     /// Example: gprflow stages
+    #[command(verbatim_doc_comment)]
     Stages,
     /// Simulate a run of a scenario (world, trajectory, sensors) into a recording.
     ///
-    /// Example: gprflow sim tools/sim/scenarios/basement.yaml -o basement.mcap --run loop
+    /// Examples:
+    ///   gprflow sim tools/sim/scenarios/basement.yaml --run loop --duration 20 -o out/basement-loop.mcap
+    ///   gprflow sim --schema
+    #[command(verbatim_doc_comment)]
     Sim {
         /// Scenario file (YAML; fields in tools/sim/scenarios/README.md).
         #[arg(required_unless_present = "schema")]
@@ -148,7 +163,12 @@ enum Command {
     },
     /// Accuracy of a run against ground truth: ATE (raw and SE(3)-aligned), RPE, lines.
     ///
-    /// Example: gprflow eval out/run.mcap --truth recordings/sim/basement-forward_backward.mcap
+    /// Examples:
+    ///   gprflow eval recordings/golden/localize.mcap --truth recordings/sim/basement-forward_backward.mcap
+    ///   gprflow eval recordings/golden/localize.mcap --truth recordings/sim/basement-forward_backward.mcap --compare odometry=out/odometry.mcap --plot out/localize.png
+    ///   gprflow eval recordings/golden/odometry.mcap --truth recordings/sim/garage-loops-60s.mcap --json
+    /// (out/odometry.mcap: the odometry graph on the basement sample, as in `gprflow launch --help`)
+    #[command(verbatim_doc_comment)]
     Eval {
         /// The run (an MCAP recording).
         run: PathBuf,
@@ -170,6 +190,9 @@ enum Command {
         /// Output format.
         #[arg(long, value_enum, default_value = "text")]
         format: gprflow_cli::eval::ReportFormat,
+        /// Print JSON (the same as `--format json`).
+        #[arg(long, conflicts_with = "format")]
+        json: bool,
         /// Also write the associated poses as PREFIX_est.txt and PREFIX_gt.txt (TUM).
         #[arg(long, value_name = "PREFIX")]
         write_tum: Option<PathBuf>,
@@ -179,12 +202,18 @@ enum Command {
         /// Another pose topic of the run to draw (odometry, ...); repeatable.
         #[arg(long, value_name = "TOPIC")]
         also: Vec<String>,
+        /// Another run to draw and evaluate beside it (its estimate, e.g. the odometry-only
+        /// run of the same recording), as `FILE` or `LABEL=FILE`; repeatable.
+        #[arg(long, value_name = "[LABEL=]MCAP")]
+        compare: Vec<String>,
     },
     /// LGPR tracking accuracy against the mapping pass (seed 001 eq. 11): along-, cross-track
     /// and total RMS over distance for the LGPR and the GPS/INS, lock share, and the paper's
     /// figures (error vs speed, error CDF, error vs correlation, error vs lateral offset).
     ///
-    /// Example: gprflow lgpr-eval out/lgpr-track.mcap --baseline out/highway-map.mcap --plot-dir out/lgpr-figures
+    /// Example (on the runs of the LGPR tour in README.md, which take minutes to make):
+    ///   gprflow lgpr-eval out/hw-fixes.mcap --baseline out/hw-map.mcap --plot-dir out/lgpr-figures
+    #[command(verbatim_doc_comment)]
     LgprEval {
         /// Tracking runs (recordings of graphs/lgpr-track.yaml: map fixes, truth, GPS/INS).
         #[arg(required = true)]
@@ -202,6 +231,9 @@ enum Command {
         /// Output format.
         #[arg(long, value_enum, default_value = "text")]
         format: gprflow_cli::eval::ReportFormat,
+        /// Print JSON (the same as `--format json`).
+        #[arg(long, conflicts_with = "format")]
+        json: bool,
         /// Write the figures (PNG) into this directory.
         #[arg(long, value_name = "DIR")]
         plot_dir: Option<PathBuf>,
@@ -214,8 +246,10 @@ enum Command {
     /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
     /// `wheel_scale`).
     ///
-    /// Example: gprflow calibrate-wheel recordings/sim/basement-forward_backward.mcap
-    /// (tools/scripts/calibrate-wheel.sh calibrates the simulated rig on the training runs)
+    /// Example (tools/scripts/calibrate-wheel.sh calibrates the simulated rig on the training
+    /// runs):
+    ///   gprflow calibrate-wheel recordings/sim/basement-forward_backward.mcap
+    #[command(verbatim_doc_comment)]
     CalibrateWheel {
         /// Recordings with wheel odometry and ground truth.
         #[arg(required = true)]
@@ -233,18 +267,21 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Convert a radar file to a recording, or a recording's trajectory to a TUM file.
+    /// Convert a radar file to a recording, or a recording's trajectory to a TUM file (the
+    /// output format from the output's extension: .mcap, or .tum/.txt; `--to` otherwise).
     ///
     /// Examples:
-    ///   gprflow convert GSSI_FILE____032.DZT --to mcap -o line.mcap
-    ///   gprflow convert path/to/cmu-gpr-sequence/ --to mcap -o seq.mcap
-    ///   gprflow convert run.mcap --to tum --topic /truth/pose -o truth.txt
+    ///   gprflow convert recordings/real-gpr/GSSI_FILE____032.DZT -o out/dzt.mcap
+    ///   gprflow convert recordings/sim/basement-forward_backward.mcap --topic /truth/pose -o out/truth.tum
+    ///   gprflow convert path/to/cmu-gpr-sequence/ -o seq.mcap
+    #[command(verbatim_doc_comment)]
     Convert {
         /// Input: a CMU-GPR sequence folder, a .DZT, a .DT1 (with its .HD) or a recording.
         input: PathBuf,
-        /// Output format: `mcap` (radar files) or `tum` (a recording's trajectory).
+        /// Output format: `mcap` (radar files) or `tum` (a recording's trajectory); default
+        /// from the output's extension.
         #[arg(long, value_parser = ["mcap", "tum"])]
-        to: String,
+        to: Option<String>,
         /// Input format for `--to mcap` (default: from the path).
         #[arg(long, value_enum, default_value = "auto")]
         format: InputFormat,
@@ -255,13 +292,14 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Draw traces as a radargram (PNG, one column per trace), or one submap.
+    /// Draw traces as a radargram (PNG with distance, two-way-time and optional depth axes and a
+    /// colour scale), or one submap.
     ///
     /// Examples:
-    ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o r.png
-    ///   gprflow radargram recordings/real-gpr/GSSI_FILE____032.DZT -o dzt.png
-    ///   gprflow radargram run.mcap --topic /filter/submap --submap 120 -o submap.png
-    ///   gprflow radargram slam.mcap --topic /filter/submap --features /lines/observation -o pipe.png
+    ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o out/basement.png
+    ///   gprflow radargram recordings/real-gpr/GSSI_FILE____032.DZT --velocity 0.1 -o out/dzt.png
+    ///   gprflow radargram recordings/golden/submaps.mcap --topic /filter/submap --gain none --colormap seismic -o out/submap.png
+    #[command(verbatim_doc_comment)]
     Radargram {
         /// Recording, or a radar file (CMU-GPR folder, .DZT, .DT1).
         input: PathBuf,
@@ -284,13 +322,32 @@ enum Command {
         /// Draw no line observations.
         #[arg(long, conflicts_with = "features")]
         no_features: bool,
+        /// Wave speed in the ground, m/ns, for a depth axis (depth = v t / 2; dry sand about
+        /// 0.15, wet soil about 0.06).
+        #[arg(long, value_name = "M_PER_NS")]
+        velocity: Option<f64>,
+        /// Gain with two-way time.
+        #[arg(long, value_enum, default_value = "linear")]
+        gain: gprflow_cli::plot::Gain,
+        /// Percentile of amplitudes at the ends of the colour scale (larger values saturate).
+        #[arg(long, default_value_t = 99.0, value_name = "PERCENT")]
+        clip: f64,
+        /// Colour map.
+        #[arg(long, value_enum, default_value = "grey")]
+        colormap: gprflow_cli::plot::Colormap,
+        /// Keep the mean trace (by default it is subtracted: the direct wave and ringing).
+        #[arg(long)]
+        keep_background: bool,
         /// PNG to write.
         #[arg(short, long)]
         output: PathBuf,
     },
     /// Compare two recordings: exit 0 within tolerance, 1 on a regression, 2 on an error.
     ///
-    /// Example: gprflow diff golden.mcap new.mcap --abs-tol 1e-6
+    /// Examples:
+    ///   gprflow diff recordings/golden/toy.mcap recordings/golden/toy.mcap
+    ///   gprflow diff recordings/golden/localize.mcap out/loc.mcap --abs-tol 1e-6 --json
+    #[command(verbatim_doc_comment)]
     Diff {
         /// Reference recording.
         a: PathBuf,
@@ -312,7 +369,10 @@ enum Command {
     },
     /// Check a graph file without running it (errors name file, line and key).
     ///
-    /// Example: gprflow check graphs/toy.yaml
+    /// Examples:
+    ///   gprflow check graphs/toy.yaml
+    ///   gprflow check graphs/localize.yaml --set method=learned
+    #[command(verbatim_doc_comment)]
     Check {
         /// Graph file.
         graph: PathBuf,
@@ -324,9 +384,11 @@ enum Command {
     /// write them between the markers of the markdown file the experiment names.
     ///
     /// Examples:
-    ///   gprflow experiment tools/experiments/tables.yaml
-    ///   gprflow experiment tools/experiments/tables.yaml --variant by_hand --repeats 0
-    ///   gprflow experiment tools/experiments/repeats.yaml --set stamps=overlap --reuse
+    ///   gprflow experiment tools/experiments/tables.yaml --dry-run
+    ///   gprflow experiment tools/experiments/tables.yaml --variant by_hand --repeats 0 --dry-run
+    ///   gprflow experiment tools/experiments/repeats.yaml --set stamps=overlap --reuse --dry-run
+    /// (without --dry-run: the tables of docs/localisation.md, about 20 minutes)
+    #[command(verbatim_doc_comment)]
     Experiment {
         /// Experiment file (YAML; its fields are described in tools/experiments/tables.yaml).
         file: PathBuf,
@@ -354,9 +416,21 @@ enum Command {
         dry_run: bool,
     },
     /// Benchmarks.
+    #[command(verbatim_doc_comment)]
     Bench {
         #[command(subcommand)]
         which: BenchCommand,
+    },
+    /// Print a shell completion script.
+    ///
+    /// Examples:
+    ///   gprflow completions bash > out/gprflow.bash
+    ///   (then `source out/gprflow.bash`, or install it as
+    ///   ~/.local/share/bash-completion/completions/gprflow)
+    #[command(verbatim_doc_comment)]
+    Completions {
+        /// Shell.
+        shell: clap_complete::Shell,
     },
 }
 
@@ -365,7 +439,10 @@ enum BenchCommand {
     /// Solve a problem exported by the GTSAM peer in batch and incrementally; print final
     /// error, ATE and per-update timings.
     ///
-    /// Example: gprflow bench estimate problem.txt --json
+    /// Example (`tools/peer/gtsam_problem.py` writes other problems):
+    ///   gprflow bench estimate stages/estimate/tests/fixtures/peer_n300.txt --json
+    #[command(verbatim_doc_comment)]
+    #[command(verbatim_doc_comment)]
     Estimate {
         /// Problem file (`tools/peer/gtsam_problem.py N -o FILE`).
         problem: PathBuf,
@@ -437,9 +514,11 @@ fn main() -> ExitCode {
             delta,
             max_gap_ms,
             format,
+            json,
             write_tum,
             plot,
             also,
+            compare,
         } => gprflow_cli::eval::eval_command(&gprflow_cli::eval::EvalArgs {
             run,
             truth,
@@ -447,10 +526,15 @@ fn main() -> ExitCode {
             truth_topic,
             delta,
             max_gap_ms,
-            format,
+            format: if json {
+                gprflow_cli::eval::ReportFormat::Json
+            } else {
+                format
+            },
             write_tum,
             plot,
             also,
+            compare,
         }),
         Command::LgprEval {
             runs,
@@ -458,6 +542,7 @@ fn main() -> ExitCode {
             max_offset_m,
             topic,
             format,
+            json,
             plot_dir,
             samples_dir,
         } => gprflow_cli::lgpr_eval::lgpr_eval_command(&gprflow_cli::lgpr_eval::LgprEvalArgs {
@@ -465,7 +550,11 @@ fn main() -> ExitCode {
             baseline,
             max_offset_m,
             topic,
-            format,
+            format: if json {
+                gprflow_cli::eval::ReportFormat::Json
+            } else {
+                format
+            },
             plot_dir,
             samples_dir,
         }),
@@ -488,9 +577,14 @@ fn main() -> ExitCode {
             format,
             topic,
             output,
-        } => match to.as_str() {
-            "mcap" => gprflow_cli::convert::convert_to_mcap(&input, format.into(), &output),
-            _ => gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output),
+        } => match gprflow_cli::convert::output_format(to.as_deref(), &output) {
+            Ok(gprflow_cli::convert::OutputFormat::Mcap) => {
+                gprflow_cli::convert::convert_to_mcap(&input, format.into(), &output)
+            }
+            Ok(gprflow_cli::convert::OutputFormat::Tum) => {
+                gprflow_cli::eval::convert_to_tum(&input, topic.as_deref(), &output)
+            }
+            Err(e) => Err(e),
         },
         Command::Radargram {
             input,
@@ -500,6 +594,11 @@ fn main() -> ExitCode {
             to,
             features,
             no_features,
+            velocity,
+            gain,
+            clip,
+            colormap,
+            keep_background,
             output,
         } => gprflow_cli::radargram::radargram_command(&gprflow_cli::radargram::RadargramRequest {
             input: &input,
@@ -508,6 +607,11 @@ fn main() -> ExitCode {
             submap,
             features: features.as_deref(),
             no_features,
+            velocity_m_per_ns: velocity,
+            gain,
+            clip_percentile: clip,
+            colormap,
+            keep_background,
             output: &output,
         }),
         Command::Diff {
@@ -599,6 +703,15 @@ fn main() -> ExitCode {
                 json,
             },
         ),
+        Command::Completions { shell } => {
+            clap_complete::generate(
+                shell,
+                &mut <Cli as clap::CommandFactory>::command(),
+                "gprflow",
+                &mut std::io::stdout(),
+            );
+            Ok(ExitCode::SUCCESS)
+        }
     };
     match result {
         Ok(code) => code,

@@ -25,6 +25,16 @@ pub struct RadargramRequest<'a> {
     pub features: Option<&'a str>,
     /// Draw no features.
     pub no_features: bool,
+    /// Wave speed in the ground for a depth axis, m/ns.
+    pub velocity_m_per_ns: Option<f64>,
+    /// Gain with depth.
+    pub gain: crate::plot::Gain,
+    /// Percentile of magnitudes at the ends of the colour scale.
+    pub clip_percentile: f64,
+    /// Colour map.
+    pub colormap: crate::plot::Colormap,
+    /// Keep the mean trace (no background removal).
+    pub keep_background: bool,
     /// PNG to write.
     pub output: &'a Path,
 }
@@ -149,9 +159,11 @@ pub fn radargram_command(req: &RadargramRequest<'_>) -> Result<ExitCode> {
                 continue;
             }
             let trace: Trace = gprflow::msg::decode(data)?;
+            distances_m.push(trace.distance_m);
+            sample_interval_ns = trace.sample_interval_ns;
             traces.push(as_columns(&trace));
         }
-        what = "traces".into();
+        what = format!("{} traces", input.display());
     } else {
         let rec = Recording::open(input)?;
         let topics = rec.topics();
@@ -229,6 +241,7 @@ pub fn radargram_command(req: &RadargramRequest<'_>) -> Result<ExitCode> {
                 // time-domain sweeps: the middle channel
                 match gprflow::msg::decode::<Sweep>(m.data) {
                     Ok(s) if s.domain == Sweep::DOMAIN_TIME && s.channel_count > 0 => {
+                        sample_interval_ns = s.sample_interval_ns;
                         let n = s.bin_count as usize;
                         let ch = s.channel_count as usize / 2;
                         traces.push(
@@ -271,6 +284,13 @@ pub fn radargram_command(req: &RadargramRequest<'_>) -> Result<ExitCode> {
             };
             traces = columns;
             what = format!("submap {id} (saliency {saliency:.3}) of {topic}");
+            if let Some(f) = frame {
+                let n = f.cols.max(2) - 1;
+                distances_m = (0..f.cols)
+                    .map(|c| f.start_distance_m + (f.end_distance_m - f.start_distance_m) * c as f64 / n as f64)
+                    .collect();
+                sample_interval_ns = f.sample_interval_ns;
+            }
         }
     }
     if traces.is_empty() {
@@ -284,8 +304,32 @@ pub fn radargram_command(req: &RadargramRequest<'_>) -> Result<ExitCode> {
             .collect(),
         None => Vec::new(),
     };
-    // a submap is small: three pixels per value
-    crate::plot::radargram(output, &traces, &features, if frame.is_some() { 3 } else { 1 })?;
+    // a submap's distances fall when it was driven backwards (its columns are in ground
+    // order): then the axis counts metres from its first column
+    let distances_m = (distances_m.len() == traces.len())
+        .then_some(distances_m)
+        .and_then(|mut d| {
+            if let (Some(&first), true) = (d.first(), frame.is_some() && d.first() > d.last()) {
+                d.iter_mut().for_each(|v| *v = first - *v);
+            }
+            crate::plot::usable_distances(&d).then_some(d)
+        });
+    crate::plot::radargram(
+        output,
+        &crate::plot::Radargram {
+            title: &format!("{what}: {} columns", traces.len()),
+            traces: &traces,
+            distances_m,
+            sample_interval_ns: (sample_interval_ns.is_finite() && sample_interval_ns > 0.0)
+                .then_some(sample_interval_ns),
+            velocity_m_per_ns: req.velocity_m_per_ns,
+            remove_background: !req.keep_background,
+            gain: req.gain,
+            clip_percentile: req.clip_percentile,
+            colormap: req.colormap,
+            features: &features,
+        },
+    )?;
     let drawn = match &features_topic {
         Some(t) => format!(" with {} line observations of {t}", features.len()),
         None => String::new(),
