@@ -10,6 +10,8 @@
 mod common;
 
 mod eval;
+mod foxglove;
+mod habits;
 mod golden;
 mod ingest;
 mod launch;

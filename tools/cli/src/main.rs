@@ -86,7 +86,8 @@ enum Command {
     },
     /// Run one stage as this process (the launcher uses it).
     ///
-    /// Example: gprflow stage toy_gain --spec /tmp/gprflow-1234/gain.json
+    /// Example (the launcher writes the spec):
+    ///   gprflow stage toy_gain --spec /tmp/gprflow-1234/gain.json
     #[command(verbatim_doc_comment)]
     Stage {
         /// Stage kind.
@@ -125,7 +126,8 @@ enum Command {
     },
     /// List the stages this build knows, with their ports.
     ///
-    /// Example: gprflow stages
+    /// Example:
+    ///   gprflow stages
     #[command(verbatim_doc_comment)]
     Stages,
     /// Simulate a run of a scenario (world, trajectory, sensors) into a recording.
@@ -207,9 +209,11 @@ enum Command {
         #[arg(long, value_name = "[LABEL=]MCAP")]
         compare: Vec<String>,
     },
-    /// LGPR tracking accuracy against the mapping pass (seed 001 eq. 11): along-, cross-track
-    /// and total RMS over distance for the LGPR and the GPS/INS, lock share, and the paper's
-    /// figures (error vs speed, error CDF, error vs correlation, error vs lateral offset).
+    /// LGPR tracking accuracy against the mapping pass (seed 001 eq. 11).
+    ///
+    /// Along-, cross-track and total RMS over distance for the LGPR and the GPS/INS, lock
+    /// share, and the paper's figures (error vs speed, error CDF, error vs correlation, error
+    /// vs lateral offset).
     ///
     /// Example (on the runs of the LGPR tour in README.md, which take minutes to make):
     ///   gprflow lgpr-eval out/hw-fixes.mcap --baseline out/hw-map.mcap --plot-dir out/lgpr-figures
@@ -242,9 +246,10 @@ enum Command {
         #[arg(long, value_name = "DIR")]
         samples_dir: Option<PathBuf>,
     },
-    /// The wheel's scale (true ground metres per recorded wheel metre) against ground truth,
-    /// over recordings of one rig: the value for the graphs' `wheel_scale` variable (ingest's
-    /// `wheel_scale`).
+    /// The wheel's scale against ground truth: the graphs' `wheel_scale` for a rig.
+    ///
+    /// True ground metres per recorded wheel metre over recordings of one rig: the value for
+    /// the graphs' `wheel_scale` variable (ingest's `wheel_scale`).
     ///
     /// Example (tools/scripts/calibrate-wheel.sh calibrates the simulated rig on the training
     /// runs):
@@ -267,13 +272,15 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Convert a radar file to a recording, or a recording's trajectory to a TUM file (the
-    /// output format from the output's extension: .mcap, or .tum/.txt; `--to` otherwise).
+    /// Convert a radar file to a recording, or a recording's trajectory to a TUM file.
+    ///
+    /// The output format comes from the output's extension (.mcap, or .tum/.txt), or `--to`.
     ///
     /// Examples:
     ///   gprflow convert recordings/real-gpr/GSSI_FILE____032.DZT -o out/dzt.mcap
     ///   gprflow convert recordings/sim/basement-forward_backward.mcap --topic /truth/pose -o out/truth.tum
-    ///   gprflow convert path/to/cmu-gpr-sequence/ -o seq.mcap
+    ///   gprflow convert recordings/real-gpr/SnS_ComOffs_XLINE00.DT1 -o out/dt1.mcap
+    /// (a CMU-GPR sequence folder converts the same way)
     #[command(verbatim_doc_comment)]
     Convert {
         /// Input: a CMU-GPR sequence folder, a .DZT, a .DT1 (with its .HD) or a recording.
@@ -292,8 +299,9 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Draw traces as a radargram (PNG with distance, two-way-time and optional depth axes and a
-    /// colour scale), or one submap.
+    /// Draw traces (or one submap) as a radargram picture.
+    ///
+    /// A PNG with distance, two-way-time and optional depth axes and a colour scale.
     ///
     /// Examples:
     ///   gprflow radargram recordings/sim/basement-forward_backward.mcap --to 30 -o out/basement.png
@@ -380,14 +388,15 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
-    /// Run an experiment file's matrix (worlds x models, with repeats) and print its tables;
-    /// write them between the markers of the markdown file the experiment names.
+    /// Run an experiment file's matrix (worlds x models, with repeats) and print its tables.
+    ///
+    /// The tables are written between the markers of the markdown file the experiment names.
     ///
     /// Examples:
     ///   gprflow experiment tools/experiments/tables.yaml --dry-run
     ///   gprflow experiment tools/experiments/tables.yaml --variant by_hand --repeats 0 --dry-run
     ///   gprflow experiment tools/experiments/repeats.yaml --set stamps=overlap --reuse --dry-run
-    /// (without --dry-run: the tables of docs/localisation.md, about 20 minutes)
+    /// (without --dry-run: the localisation tables of docs/results.md, about 20 minutes)
     #[command(verbatim_doc_comment)]
     Experiment {
         /// Experiment file (YAML; its fields are described in tools/experiments/tables.yaml).
