@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The LGPR tables (seed 001 Tables IV-V, Figs. 15, 17, 18, 19; docs/lgpr.md): for each
+# The LGPR tables (seed 001 Tables IV-V, Figs. 15, 17, 18, 19; tables in docs/results.md): for each
 # highway world, the mapping pass into a map store (graphs/lgpr-map.yaml), every tracking
 # pass (16-97 km/h, lateral offsets, wetter soil) through graphs/lgpr-fuse.yaml against it
 # (the tracker's map fixes and the estimator fusing them), and `gprflow lgpr-eval` over both. highway.yaml is the world the tracker's settings were

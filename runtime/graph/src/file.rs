@@ -39,7 +39,7 @@ pub(crate) struct GraphFile {
 #[serde(deny_unknown_fields)]
 #[schemars(extend("oneOf" = [{ "required": ["stage"] }, { "required": ["exec"] }]))]
 pub(crate) struct NodeDecl {
-    /// Stage kind that this node runs (`gprflow stage --list` names them).
+    /// Stage kind that this node runs (`gprflow stages` lists them).
     pub stage: Option<String>,
     /// A user's executable that speaks the gprflow bus; it declares its `outputs` and accepts
     /// any inputs. Kept as written: the launcher resolves relative paths.

@@ -4,7 +4,7 @@
 //! every reflector of the later pass arrives earlier or later by the same factor of its
 //! travel time, so the two submaps differ by a stretch of the time (row) axis, about the
 //! surface (row 0). The stage tries the query at a few such stretches and keeps the one whose
-//! features share most with the reference (README, "Localisation").
+//! features share most with the reference (docs/localisation.md).
 
 use crate::Result;
 use crate::engineered::SubmapView;

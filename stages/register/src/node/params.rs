@@ -53,7 +53,7 @@ pub struct RegisterParams {
     /// between passes (drying soil). Default 0 (off); graphs/localize.yaml sets 1. It
     /// registers more pairs on runs whose soil dried between passes, and lets through rare
     /// wrong matches the checks were not chosen for, which the estimator's registration gate
-    /// is there to drop (README, "Localisation").
+    /// is there to drop (docs/localisation.md).
     pub stretch_steps: usize,
     /// Relative stretch between two neighbouring factors of the search (default 0.015).
     pub stretch_step: f64,
