@@ -20,8 +20,6 @@ $g launch graphs/localize.yaml --set recording="$recording" --set method=learned
 $g inspect "$out"
 # the same recording without GPR: IMU and wheel odometry only
 $g launch graphs/odometry.yaml --set recording="$recording" --record "${out%.mcap}-odometry.mcap"
-echo "== odometry only (graphs/odometry.yaml)"
-$g eval "${out%.mcap}-odometry.mcap" --truth "$recording"
-echo "== with learned GPR registration (graphs/localize.yaml)"
-$g eval "$out" --truth "$recording" --plot "${out%.mcap}.png"
-echo "plot: ${out%.mcap}.png"
+echo "== with learned GPR registration (graphs/localize.yaml), beside odometry alone (graphs/odometry.yaml)"
+$g eval "$out" --truth "$recording" --compare odometry="${out%.mcap}-odometry.mcap" --plot "${out%.mcap}.png"
+echo "plot: ${out%.mcap}.png (registrations: ${out%.mcap}-registration.png)"
