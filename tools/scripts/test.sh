@@ -31,4 +31,7 @@ tools/peer/gtsam_check.sh --verify
 # a short soak: the odometry graph again and again for 30 s; nothing may grow, be left behind
 # or be lost (tools/bench/soak.sh, 30 minutes of the localisation graph by default)
 GPRFLOW="${CARGO_TARGET_DIR:-target}/debug/gprflow" tools/bench/soak.sh 0.5 odometry
+# the docs: every link in README.md and docs/ resolves, and every command block marked
+# `sh runnable` runs as written (tools/scripts/check-docs.py --list shows them)
+python3 tools/scripts/check-docs.py --run --gprflow "${CARGO_TARGET_DIR:-target}/debug/gprflow"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
