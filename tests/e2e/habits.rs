@@ -62,7 +62,11 @@ fn every_help_example_runs_as_written() {
     assert!(names.len() > 15, "{names:?}");
     let dir = tempfile::tempdir().expect("tempdir");
     scratch(dir.path());
-    let bin = Path::new(GPRFLOW).parent().expect("bin dir").canonicalize().expect("bin dir");
+    let bin = Path::new(GPRFLOW)
+        .parent()
+        .expect("bin dir")
+        .canonicalize()
+        .expect("bin dir");
     let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default());
     let mut ran = 0;
     for name in &names {
@@ -89,11 +93,19 @@ fn every_help_example_runs_as_written() {
     }
     assert!(ran > 25, "{ran} examples ran");
     // what some of them made
-    for made in ["out/dzt.mcap", "out/truth.tum", "out/localize.png", "out/localize-registration.png"] {
+    for made in [
+        "out/dzt.mcap",
+        "out/truth.tum",
+        "out/localize.png",
+        "out/localize-registration.png",
+    ] {
         assert!(dir.path().join(made).is_file(), "{made}");
     }
     let completions = std::fs::read_to_string(dir.path().join("out/gprflow.bash")).expect("completions");
-    assert!(completions.contains("gprflow__subcmd__radargram") && completions.contains("--velocity"), "bash completions name the subcommands");
+    assert!(
+        completions.contains("gprflow__subcmd__radargram") && completions.contains("--velocity"),
+        "bash completions name the subcommands"
+    );
 }
 
 #[test]
@@ -108,7 +120,10 @@ fn convert_takes_the_format_from_the_extension_or_says_what_it_needs() {
     ]);
     assert_eq!(o.status.code(), Some(2));
     let err = stderr(&o);
-    assert!(err.contains("line.dat: cannot tell the output format") && err.contains("--to mcap"), "{err}");
+    assert!(
+        err.contains("line.dat: cannot tell the output format") && err.contains("--to mcap"),
+        "{err}"
+    );
     let o = gprflow(&[
         "convert",
         "recordings/real-gpr/GSSI_FILE____032.DZT",
@@ -129,5 +144,9 @@ fn convert_takes_the_format_from_the_extension_or_says_what_it_needs() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let first = std::fs::read_to_string(&tum).expect("tum");
-    assert_eq!(first.lines().next().map(|l| l.split_whitespace().count()), Some(8), "TUM: t x y z qx qy qz qw");
+    assert_eq!(
+        first.lines().next().map(|l| l.split_whitespace().count()),
+        Some(8),
+        "TUM: t x y z qx qy qz qw"
+    );
 }

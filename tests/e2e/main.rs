@@ -11,8 +11,8 @@ mod common;
 
 mod eval;
 mod foxglove;
-mod habits;
 mod golden;
+mod habits;
 mod ingest;
 mod launch;
 mod lgpr;
