@@ -18,8 +18,8 @@ fn slam_detects_the_pipe_and_beats_odometry() {
     // the shipped graph, recording the traces and submaps too (for the pictures)
     let text = std::fs::read_to_string(repo().join("graphs/slam.yaml")).expect("graph");
     let text = text.replace(
-        r#"record: { topics: ["estimate/*", "lines/*"] }"#,
-        r#"record: { topics: ["estimate/*", "lines/*", "dsp/*", "filter/*"] }"#,
+        r#"record: { topics: ["estimate/*", "lines/*", "viz/*"] }"#,
+        r#"record: { topics: ["estimate/*", "lines/*", "viz/*", "dsp/*", "filter/*"] }"#,
     );
     assert!(text.contains("dsp/*"), "graphs/slam.yaml's record line changed");
     let graph = dir.path().join("slam.yaml");
