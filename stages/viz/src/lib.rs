@@ -10,6 +10,7 @@ pub use node::{VizParams, VizStage};
 
 /// Amplitude gain with two-way time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, schemars::JsonSchema)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Gain {
     /// None: the amplitudes as recorded (after background removal).

@@ -151,6 +151,8 @@ pub struct Compared {
 /// What one run's evaluation leaves for the pictures.
 struct Drawn {
     topic: String,
+    /// The run's last line map and the truth's lines.
+    lines: crate::plot::Lines,
     truth: Trajectory,
     associated: eval::Associated,
     along: Vec<f64>,
@@ -211,13 +213,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalReport> {
 /// Draws the run (and the compared ones) into `png`, and next to it `STEM-registration.png`
 /// and `STEM-lines.png` when the runs hold registrations or line observations.
 fn draw(args: &EvalArgs, png: &Path, report: &EvalReport, main: &Drawn, others: &[(String, Drawn)]) -> Result<()> {
-    let run = Recording::open(&args.run)?;
     let truth_topic = topic_name(&args.truth_topic);
-    let truth_rec = Recording::open(args.truth.as_ref().unwrap_or(&args.run))?;
-    let hough = |m: Option<(String, Vec<HoughLine>)>| {
-        m.map(|(_, l)| l.iter().map(|h| (h.rho_m, h.theta_rad)).collect())
-            .unwrap_or_default()
-    };
     let xy = |poses: &[gprflow::eval::Pose]| -> Vec<(f64, f64)> {
         poses
             .iter()
@@ -239,12 +235,15 @@ fn draw(args: &EvalArgs, png: &Path, report: &EvalReport, main: &Drawn, others: 
     let mut runs = vec![track(main_label.clone(), main)];
     runs.extend(others.iter().map(|(label, d)| track(format!("{label} {}", d.topic), d)));
     let mut extra = Vec::new();
-    for topic in &args.also {
-        let t = Trajectory::from_recording(&run, &topic_name(topic))?;
-        extra.push(crate::plot::Series {
-            label: topic_name(topic),
-            points: xy(&t.poses),
-        });
+    if !args.also.is_empty() {
+        let run = Recording::open(&args.run)?;
+        for topic in &args.also {
+            let t = Trajectory::from_recording(&run, &topic_name(topic))?;
+            extra.push(crate::plot::Series {
+                label: topic_name(topic),
+                points: xy(&t.poses),
+            });
+        }
     }
     let main_seconds = seconds(&main.associated.stamps_ns);
     let over_time = |label: &str, v: &[f64]| crate::plot::Series {
@@ -265,10 +264,7 @@ fn draw(args: &EvalArgs, png: &Path, report: &EvalReport, main: &Drawn, others: 
                 over_time("along track", &main.along),
                 over_time("cross track", &main.cross),
             )),
-            lines: crate::plot::Lines {
-                truth: hough(last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC))),
-                estimate: hough(last_line_map(&run, None)),
-            },
+            lines: main.lines.clone(),
         },
     )?;
     // registrations and line observations, each run's as one series
@@ -350,9 +346,19 @@ fn evaluate_one(args: &EvalArgs) -> Result<(EvalReport, Drawn)> {
         }
     }
     let true_lines = last_line_map(&truth_rec, Some(TRUTH_LINES_TOPIC));
-    let lines = match (last_line_map(&run, None), &true_lines) {
-        (Some((_, est)), Some((_, tru))) => eval::line_error(&est, tru),
+    let estimated_lines = last_line_map(&run, None);
+    let lines = match (&estimated_lines, &true_lines) {
+        (Some((_, est)), Some((_, tru))) => eval::line_error(est, tru),
         _ => None,
+    };
+    let hough = |m: &Option<(String, Vec<HoughLine>)>| {
+        m.as_ref()
+            .map(|(_, l)| l.iter().map(|h| (h.rho_m, h.theta_rad)).collect())
+            .unwrap_or_default()
+    };
+    let drawn_lines = crate::plot::Lines {
+        truth: hough(&true_lines),
+        estimate: hough(&estimated_lines),
     };
     let (along, cross) = eval::track_errors(&a);
     let registration = registration_error(&run, &truth, max_gap_ns);
@@ -382,6 +388,7 @@ fn evaluate_one(args: &EvalArgs) -> Result<(EvalReport, Drawn)> {
         report,
         Drawn {
             topic,
+            lines: drawn_lines,
             truth,
             associated: a,
             along,
@@ -462,6 +469,12 @@ fn compared_rows(r: &EvalReport) -> Vec<(String, &EvalReport)> {
         .collect()
 }
 
+/// The RMSE of a report's ATE, aligned ATE, along- and cross-track error, `-` where absent.
+fn rmse_cells(r: &EvalReport) -> [String; 4] {
+    [&r.ate, &r.ate_aligned, &r.along_track, &r.cross_track]
+        .map(|s| s.as_ref().map_or("-".to_owned(), |s| format!("{:.4}", s.rmse)))
+}
+
 /// Runs `gprflow eval`.
 ///
 /// # Errors
@@ -519,15 +532,8 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
                     "\n| run | ATE RMSE (m) | ATE aligned RMSE (m) | along-track RMSE (m) | cross-track RMSE (m) |\n|---|---:|---:|---:|---:|"
                 )?;
                 for (label, c) in compared_rows(&r) {
-                    let cell = |s: &Option<Stats>| s.as_ref().map_or("-".to_owned(), |s| format!("{:.4}", s.rmse));
-                    writeln!(
-                        out,
-                        "| {label} | {} | {} | {} | {} |",
-                        cell(&c.ate),
-                        cell(&c.ate_aligned),
-                        cell(&c.along_track),
-                        cell(&c.cross_track)
-                    )?;
+                    let [ate, aligned, along, cross] = rmse_cells(c);
+                    writeln!(out, "| {label} | {ate} | {aligned} | {along} | {cross} |")?;
                 }
             }
         }
@@ -577,15 +583,8 @@ pub fn eval_command(args: &EvalArgs) -> Result<ExitCode> {
                     "run", "ATE", "ATE aligned", "along", "cross"
                 )?;
                 for (label, c) in compared_rows(&r) {
-                    let cell = |s: &Option<Stats>| s.as_ref().map_or("-".to_owned(), |s| format!("{:.4}", s.rmse));
-                    writeln!(
-                        out,
-                        "{label:<28} {:>9} {:>12} {:>11} {:>11}",
-                        cell(&c.ate),
-                        cell(&c.ate_aligned),
-                        cell(&c.along_track),
-                        cell(&c.cross_track)
-                    )?;
+                    let [ate, aligned, along, cross] = rmse_cells(c);
+                    writeln!(out, "{label:<28} {ate:>9} {aligned:>12} {along:>11} {cross:>11}")?;
                 }
             }
         }

@@ -336,7 +336,7 @@ enum Command {
         velocity: Option<f64>,
         /// Gain with two-way time.
         #[arg(long, value_enum, default_value = "linear")]
-        gain: gprflow_cli::plot::Gain,
+        gain: gprflow_viz::Gain,
         /// Percentile of amplitudes at the ends of the colour scale (larger values saturate).
         #[arg(long, default_value_t = 99.0, value_name = "PERCENT")]
         clip: f64,

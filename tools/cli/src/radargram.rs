@@ -28,7 +28,7 @@ pub struct RadargramRequest<'a> {
     /// Wave speed in the ground for a depth axis, m/ns.
     pub velocity_m_per_ns: Option<f64>,
     /// Gain with depth.
-    pub gain: crate::plot::Gain,
+    pub gain: gprflow_viz::Gain,
     /// Percentile of magnitudes at the ends of the colour scale.
     pub clip_percentile: f64,
     /// Colour map.

@@ -5,7 +5,7 @@
 mod radargram;
 mod trajectory;
 
-pub use radargram::{Colormap, Feature, Gain, Radargram, radargram, usable_distances};
+pub use radargram::{Colormap, Feature, Radargram, radargram, usable_distances};
 pub use trajectory::{Lines, RunTrack, TrajectoryFigure, trajectory_figure};
 
 use std::path::Path;
@@ -144,6 +144,53 @@ pub fn chart(path: &Path, title: &str, x_desc: &str, y_desc: &str, series: &[(Se
     Ok(())
 }
 
+/// Draws the CDF of each named series' magnitudes into `area` (`text`: caption, x and y
+/// descriptions), in the series colours ([`COLORS`] from the second on), the x axis from 0
+/// to the largest magnitude (at least `floor`) plus 5 %.
+///
+/// # Errors
+/// The image cannot be drawn.
+pub(crate) fn cdf_panel(
+    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    path: &Path,
+    [caption, x_desc, y_desc]: [&str; 3],
+    magnitudes: &[(String, Vec<f64>)],
+    floor: f64,
+) -> Result<()> {
+    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    let curves: Vec<Vec<(f64, f64)>> = magnitudes.iter().map(|(_, v)| cdf(v)).collect();
+    let largest = curves.iter().flatten().map(|p| p.0).fold(floor, f64::max);
+    let mut chart = ChartBuilder::on(area)
+        .margin(12)
+        .caption(caption, ("sans-serif", 18))
+        .x_label_area_size(36)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..largest * 1.05, 0.0..1.0)
+        .map_err(|e| draw(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    for (i, ((label, _), points)) in magnitudes.iter().zip(&curves).enumerate() {
+        let color = COLORS[(i + 1) % COLORS.len()];
+        chart
+            .draw_series(LineSeries::new(points.iter().copied(), color.stroke_width(2)))
+            .map_err(|e| draw(&e))?
+            .label(label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    Ok(())
+}
+
 /// An error figure: (left) each series' errors over time as dots, (right) the distribution
 /// (CDF) of their magnitudes; `unit` names the error (e.g. "along-track error (m)").
 ///
@@ -184,45 +231,17 @@ pub fn error_figure(path: &Path, title: &str, unit: &str, series: &[Series]) -> 
         .border_style(BLACK)
         .draw()
         .map_err(|e| draw(&e))?;
-    let curves: Vec<Series> = series
+    let magnitudes: Vec<(String, Vec<f64>)> = series
         .iter()
-        .map(|s| Series {
-            label: s.label.clone(),
-            points: cdf(&s.points.iter().map(|p| p.1).collect::<Vec<_>>()),
-        })
+        .map(|s| (s.label.clone(), s.points.iter().map(|p| p.1).collect()))
         .collect();
-    let largest = curves
-        .iter()
-        .flat_map(|s| s.points.iter().map(|p| p.0))
-        .fold(1e-6, f64::max);
-    let mut chart = ChartBuilder::on(&right)
-        .margin(12)
-        .caption("magnitude, CDF", ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..largest * 1.05, 0.0..1.0)
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(format!("|{unit}|"))
-        .y_desc("fraction")
-        .draw()
-        .map_err(|e| draw(&e))?;
-    for (i, s) in curves.iter().enumerate() {
-        let color = COLORS[(i + 1) % COLORS.len()];
-        chart
-            .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
-            .map_err(|e| draw(&e))?
-            .label(s.label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    cdf_panel(
+        &right,
+        path,
+        ["magnitude, CDF", &format!("|{unit}|"), "fraction"],
+        &magnitudes,
+        1e-6,
+    )?;
     root.present()
         .with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())

@@ -19,18 +19,6 @@ pub struct Feature {
     pub label: String,
 }
 
-/// Amplitude gain with two-way time.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Gain {
-    /// None: the amplitudes as recorded (after background removal).
-    None,
-    /// Growing linearly from 1 at the first sample to 8 at the last.
-    Linear,
-    /// Automatic gain control: each value divided by the RMS of its trace over a window of
-    /// 1/8 of the trace.
-    Agc,
-}
-
 /// Colour map.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Colormap {
@@ -57,7 +45,7 @@ pub struct Radargram<'a> {
     /// Remove the mean trace (horizontal banding: the direct wave, ringing).
     pub remove_background: bool,
     /// Gain with depth.
-    pub gain: Gain,
+    pub gain: gprflow_viz::Gain,
     /// Percentile of magnitudes mapped to the ends of the colour scale (0-100].
     pub clip_percentile: f64,
     /// Colour map.
@@ -78,11 +66,7 @@ impl Radargram<'_> {
     fn processed(&self) -> Result<(Vec<Vec<f64>>, f64)> {
         let how = gprflow_viz::Rendering {
             remove_background: self.remove_background,
-            gain: match self.gain {
-                Gain::None => gprflow_viz::Gain::None,
-                Gain::Linear => gprflow_viz::Gain::Linear,
-                Gain::Agc => gprflow_viz::Gain::Agc,
-            },
+            gain: self.gain,
             clip_percentile: self.clip_percentile,
         };
         Ok(gprflow_viz::amplitudes(self.traces, &how)?)
@@ -280,9 +264,9 @@ pub fn radargram(path: &Path, r: &Radargram<'_>) -> Result<()> {
             .map_err(|e| err(&e))?;
     }
     let gain = match r.gain {
-        Gain::None => "no gain",
-        Gain::Linear => "linear gain",
-        Gain::Agc => "AGC",
+        gprflow_viz::Gain::None => "no gain",
+        gprflow_viz::Gain::Linear => "linear gain",
+        gprflow_viz::Gain::Agc => "AGC",
     };
     root.draw(&Text::new(
         format!("{gain}, P{}", r.clip_percentile),
@@ -307,7 +291,7 @@ mod tests {
             sample_interval_ns: Some(0.5),
             velocity_m_per_ns: None,
             remove_background: true,
-            gain: Gain::None,
+            gain: gprflow_viz::Gain::None,
             clip_percentile: 100.0,
             colormap: Colormap::Grey,
             features: &[],

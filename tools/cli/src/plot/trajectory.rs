@@ -7,7 +7,7 @@ use anyhow::{Context, Result, anyhow};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::{COLORS, Series, bounds, cdf, register_font};
+use super::{COLORS, Series, bounds, cdf_panel, register_font};
 
 /// Hough lines to draw over the trajectories: true ones grey, estimated ones red.
 #[derive(Debug, Clone, Default)]
@@ -316,52 +316,18 @@ pub fn trajectory_figure(path: &Path, fig: &TrajectoryFigure<'_>) -> Result<()> 
         .map_err(|e| draw(&e))?;
 
     // distribution
-    let curves: Vec<(Series, RGBColor)> = fig
-        .runs
-        .iter()
-        .enumerate()
-        .map(|(i, r)| {
-            (
-                Series {
-                    label: r.label.clone(),
-                    points: cdf(&r.errors()),
-                },
-                COLORS[(i + 1) % COLORS.len()],
-            )
-        })
-        .collect();
-    let largest = curves
-        .iter()
-        .flat_map(|(s, _)| s.points.iter().map(|p| p.0))
-        .fold(1e-3, f64::max);
-    let mut chart = ChartBuilder::on(&bottom_right)
-        .margin(12)
-        .caption("distance from the truth, CDF", ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..largest * 1.05, 0.0..1.0)
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("distance from the truth (m)")
-        .y_desc("fraction of poses")
-        .draw()
-        .map_err(|e| draw(&e))?;
-    for (s, color) in &curves {
-        let color = *color;
-        chart
-            .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
-            .map_err(|e| draw(&e))?
-            .label(s.label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    let errors: Vec<(String, Vec<f64>)> = fig.runs.iter().map(|r| (r.label.clone(), r.errors())).collect();
+    cdf_panel(
+        &bottom_right,
+        path,
+        [
+            "distance from the truth, CDF",
+            "distance from the truth (m)",
+            "fraction of poses",
+        ],
+        &errors,
+        1e-3,
+    )?;
     root.present()
         .with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
