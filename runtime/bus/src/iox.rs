@@ -20,7 +20,9 @@ use iceoryx2::port::subscriber::Subscriber as IoxSubscriber;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
+use iceoryx2::service::attribute::{AttributeKey, AttributeSpecifier, AttributeValue, AttributeVerifier};
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use iceoryx2::service::static_config::messaging_pattern::MessagingPattern as StaticPattern;
 
 use gprflow_msg as msg;
 
@@ -46,6 +48,79 @@ fn err(topic: &str, what: impl std::fmt::Display) -> BusError {
     BusError::Transport {
         topic: topic.to_owned(),
         what: what.to_string(),
+    }
+}
+
+/// Every topic's service is named `gprflow/{topic}`.
+const SERVICE_ROOT: &str = "gprflow/";
+/// Service attribute: the topic's message type.
+const TYPE_KEY: &str = "gprflow.type";
+/// Service attribute: how many subscribers of the run that declared the topic read it.
+const READERS_KEY: &str = "gprflow.readers";
+
+fn attribute_key(key: &str) -> Result<AttributeKey> {
+    AttributeKey::new(key.as_bytes()).map_err(|e| err(key, format!("attribute key: {e:?}")))
+}
+
+fn attribute_value(topic: &str, value: &str) -> Result<AttributeValue> {
+    AttributeValue::new(value.as_bytes()).map_err(|e| err(topic, format!("attribute `{value}`: {e:?}")))
+}
+
+/// A topic found on the bus ([`IoxTransport::topics`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BusTopic {
+    /// Topic name, `node/output`.
+    pub name: String,
+    /// Message type the topic keeps (none when opened without one).
+    pub msg_type: Option<String>,
+    /// The topic overwrites instead of waiting.
+    pub latest_only: bool,
+    /// Frames a subscriber may queue.
+    pub buffer: usize,
+}
+
+impl BusTopic {
+    /// Settings to open this topic with, identical to its own.
+    pub fn topic_config(&self) -> TopicConfig {
+        let config = TopicConfig::new(&self.name)
+            .buffer(self.buffer)
+            .latest_only(self.latest_only);
+        match &self.msg_type {
+            Some(t) => config.msg_type(t),
+            None => config,
+        }
+    }
+}
+
+/// A topic declared by [`IoxTransport::declare`]; it stays while this lives.
+pub struct DeclaredTopic {
+    _factory: PubSubFactory<ipc::Service, [u8], FrameHeader>,
+}
+
+impl std::fmt::Debug for DeclaredTopic {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DeclaredTopic").finish_non_exhaustive()
+    }
+}
+
+/// The iceoryx2 resource prefix of the named bus `name` (`launch --bus`, `gprflow replay`,
+/// `gprflow record`): processes on the same named bus see each other's topics.
+///
+/// # Errors
+/// A name that is empty, longer than 32 characters, or has characters other than ASCII
+/// letters, digits, `-` and `_`.
+pub fn bus_prefix(name: &str) -> std::result::Result<String, String> {
+    let ok = !name.is_empty()
+        && name.len() <= 32
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+    if ok {
+        Ok(format!("gfbus_{name}_"))
+    } else {
+        Err(format!(
+            "bus name `{name}`: use 1 to 32 ASCII letters, digits, `-` or `_`"
+        ))
     }
 }
 
@@ -93,24 +168,113 @@ impl IoxTransport {
         let _ = self.node.try_cleanup_dead_nodes();
     }
 
-    fn pubsub(&self, topic: &TopicConfig) -> Result<PubSubFactory<ipc::Service, [u8], FrameHeader>> {
-        let name = ServiceName::new(&format!("gprflow/{}", topic.name))
-            .map_err(|e| err(&topic.name, format!("service name: {e:?}")))?;
-        let alignment = Alignment::new(PAYLOAD_ALIGNMENT)
-            .ok_or_else(|| err(&topic.name, "payload alignment is not a power of two"))?;
-        self.node
+    fn pubsub_builder(
+        &self,
+        topic: &str,
+    ) -> Result<iceoryx2::service::builder::publish_subscribe::Builder<[u8], FrameHeader, ipc::Service>> {
+        let name = ServiceName::new(&format!("{SERVICE_ROOT}{topic}"))
+            .map_err(|e| err(topic, format!("service name: {e:?}")))?;
+        let alignment =
+            Alignment::new(PAYLOAD_ALIGNMENT).ok_or_else(|| err(topic, "payload alignment is not a power of two"))?;
+        Ok(self
+            .node
             .service_builder(&name)
             .publish_subscribe::<[u8]>()
             .user_header::<FrameHeader>()
-            .payload_alignment(alignment)
+            .payload_alignment(alignment))
+    }
+
+    fn pubsub(&self, topic: &TopicConfig) -> Result<PubSubFactory<ipc::Service, [u8], FrameHeader>> {
+        let mut verifier = AttributeVerifier::new();
+        if let Some(t) = &topic.msg_type {
+            verifier = verifier
+                .require(&attribute_key(TYPE_KEY)?, &attribute_value(&topic.name, t)?)
+                .map_err(|e| err(&topic.name, format!("{e:?}")))?;
+        }
+        self.pubsub_builder(&topic.name)?
             .subscriber_max_buffer_size(topic.buffer)
             .subscriber_max_borrowed_samples(MAX_BORROWED)
             .history_size(0)
             .max_publishers(MAX_PUBLISHERS)
             .max_subscribers(MAX_SUBSCRIBERS)
             .enable_safe_overflow(topic.latest_only)
-            .open_or_create()
+            .open_or_create_with_attributes(&verifier)
             .map_err(|e| err(&topic.name, format!("cannot open publish-subscribe service: {e:?}")))
+    }
+
+    /// Creates `topic` ahead of its publisher, saying that `readers` subscribers of this run
+    /// read it: a publisher outside the run (`gprflow replay`) waits for that many before it
+    /// sends (see [`IoxTransport::declared_readers`]). The topic stays declared while the
+    /// returned handle lives.
+    ///
+    /// # Errors
+    /// When the topic exists already or cannot be created.
+    pub fn declare(&self, topic: &TopicConfig, readers: usize) -> Result<DeclaredTopic> {
+        let mut attributes = AttributeSpecifier::new()
+            .define(
+                &attribute_key(READERS_KEY)?,
+                &attribute_value(&topic.name, &readers.to_string())?,
+            )
+            .map_err(|e| err(&topic.name, format!("{e:?}")))?;
+        if let Some(t) = &topic.msg_type {
+            attributes = attributes
+                .define(&attribute_key(TYPE_KEY)?, &attribute_value(&topic.name, t)?)
+                .map_err(|e| err(&topic.name, format!("{e:?}")))?;
+        }
+        let factory = self
+            .pubsub_builder(&topic.name)?
+            .subscriber_max_buffer_size(topic.buffer)
+            .subscriber_max_borrowed_samples(MAX_BORROWED)
+            .history_size(0)
+            .max_publishers(MAX_PUBLISHERS)
+            .max_subscribers(MAX_SUBSCRIBERS)
+            .enable_safe_overflow(topic.latest_only)
+            .create_with_attributes(&attributes)
+            .map_err(|e| err(&topic.name, format!("cannot declare the topic: {e:?}")))?;
+        Ok(DeclaredTopic { _factory: factory })
+    }
+
+    /// The subscribers a run declared for `topic` ([`IoxTransport::declare`]), if it did.
+    pub fn declared_readers(&self, topic: &str) -> Option<usize> {
+        let factory = self.pubsub_builder(topic).ok()?.open().ok()?;
+        let key = attribute_key(READERS_KEY).ok()?;
+        let value = factory.attributes().key_value(&key, 0)?;
+        std::str::from_utf8(value.as_bytes()).ok()?.parse().ok()
+    }
+
+    /// The topics on this bus now (the prefix's publish-subscribe services), with the message
+    /// type each keeps, sorted by name.
+    ///
+    /// # Errors
+    /// When the services cannot be listed.
+    pub fn topics(&self) -> Result<Vec<BusTopic>> {
+        let config = self.node.config().clone();
+        let type_key = attribute_key(TYPE_KEY)?;
+        let mut found = Vec::new();
+        ipc::Service::list(&config, |details| {
+            let static_details = &details.static_details;
+            if let StaticPattern::PublishSubscribe(pubsub) = static_details.messaging_pattern()
+                && let Some(topic) = static_details.name().as_str().strip_prefix(SERVICE_ROOT)
+            {
+                let msg_type = static_details
+                    .attributes()
+                    .key_value(&type_key, 0)
+                    .and_then(|v| std::str::from_utf8(v.as_bytes()).ok())
+                    .map(str::to_owned);
+                let latest_only = pubsub.has_safe_overflow();
+                let buffer = pubsub.subscriber_max_buffer_size();
+                found.push(BusTopic {
+                    name: topic.to_owned(),
+                    msg_type,
+                    latest_only,
+                    buffer,
+                });
+            }
+            CallbackProgression::Continue
+        })
+        .map_err(|e| err("*", format!("cannot list the bus's topics: {e:?}")))?;
+        found.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(found)
     }
 
     fn event(&self, topic: &TopicConfig, purpose: &str) -> Result<EventFactory> {
@@ -314,6 +478,7 @@ impl Subscriber for IoxSub {
             .update_connections()
             .map_err(|e| err(&self.topic, format!("cannot attach to the publisher: {e:?}")))?;
         if self.ready_notifier.is_none() {
+            // a reader the publisher waits for: it counts notifiers of `ready`
             self.ready_notifier = Some(
                 self.ready
                     .notifier_builder()
@@ -322,5 +487,15 @@ impl Subscriber for IoxSub {
             );
         }
         Ok(())
+    }
+
+    fn observe(&mut self) -> Result<bool> {
+        if self.service.dynamic_config().number_of_publishers() == 0 {
+            return Ok(false);
+        }
+        self.subscriber
+            .update_connections()
+            .map_err(|e| err(&self.topic, format!("cannot connect to the publisher: {e:?}")))?;
+        Ok(true)
     }
 }

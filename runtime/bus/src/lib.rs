@@ -217,6 +217,10 @@ pub struct TopicConfig {
     pub latest_only: bool,
     /// Payload size the first shared-memory segment is sized for; larger loans grow it.
     pub initial_payload_bytes: usize,
+    /// Message type, when known: iceoryx2 keeps it with the topic, so that a process outside
+    /// the run (`gprflow record`, `gprflow replay`) can find the topic's type, and a side that
+    /// opens the topic with another type is refused.
+    pub msg_type: Option<String>,
 }
 
 impl TopicConfig {
@@ -227,7 +231,15 @@ impl TopicConfig {
             buffer: 16,
             latest_only: false,
             initial_payload_bytes: 4096,
+            msg_type: None,
         }
+    }
+
+    /// Sets the message type (builder style).
+    #[must_use]
+    pub fn msg_type(mut self, msg_type: &str) -> Self {
+        self.msg_type = Some(msg_type.to_owned());
+        self
     }
 
     /// Sets the buffer depth (builder style).
@@ -308,6 +320,16 @@ pub trait Subscriber {
     /// [`BusError::HandshakeTimeout`], [`BusError::Shutdown`] or transport errors.
     fn attach(&mut self, _timeout: Duration, _stop: &dyn Fn() -> bool) -> Result<()> {
         Ok(())
+    }
+    /// Connects to the topic's publisher without announcing this subscriber as a reader it
+    /// waits for: an observer that joins a running topic (`gprflow record`) and must not let
+    /// a publisher start before the readers it is waiting for have attached. Returns false
+    /// while the topic has no publisher.
+    ///
+    /// # Errors
+    /// Transport errors.
+    fn observe(&mut self) -> Result<bool> {
+        Ok(true)
     }
 }
 
@@ -576,6 +598,8 @@ pub struct Inbox {
     subscriber: Box<dyn Subscriber>,
     latest_only: bool,
     expected_seq: u64,
+    /// The first frame sets the sequence (a subscriber that joined a running topic).
+    joined_late: bool,
     ended: bool,
     stats: InboxStats,
 }
@@ -597,8 +621,18 @@ impl Inbox {
             subscriber,
             latest_only,
             expected_seq: 0,
+            joined_late: false,
             ended: false,
             stats: InboxStats::default(),
+        }
+    }
+
+    /// Wraps a subscriber that joins a topic already running: its first frame, whatever its
+    /// seq, starts the sequence check.
+    pub fn joining(subscriber: Box<dyn Subscriber>, latest_only: bool) -> Self {
+        Self {
+            joined_late: true,
+            ..Self::new(subscriber, latest_only)
         }
     }
 
@@ -636,6 +670,9 @@ impl Inbox {
                 kind: header.kind,
             });
         };
+        if std::mem::take(&mut self.joined_late) {
+            self.expected_seq = header.seq;
+        }
         // Control frames carry the next data seq: a gap before them is a loss too.
         if header.seq != self.expected_seq {
             if header.seq < self.expected_seq || !self.latest_only {
@@ -660,6 +697,14 @@ impl Inbox {
                 Delivery::EndOfStream
             }
         }))
+    }
+
+    /// Connects to the topic's publisher as an observer (see [`Subscriber::observe`]).
+    ///
+    /// # Errors
+    /// As [`Subscriber::observe`].
+    pub fn observe(&mut self) -> Result<bool> {
+        self.subscriber.observe()
     }
 
     /// Attaches to the topic's publisher (see [`Subscriber::attach`]).

@@ -65,7 +65,7 @@ pub enum Direction {
 pub struct Route {
     /// Topic, `node/output`.
     pub topic: String,
-    /// Message type (for logs).
+    /// Message type (logs; the type the local bus keeps with the topic).
     pub msg_type: String,
     /// Which way.
     pub direction: Direction,
@@ -88,6 +88,7 @@ impl Route {
         TopicConfig::new(&self.topic)
             .buffer(self.buffer)
             .latest_only(self.latest_only)
+            .msg_type(&self.msg_type)
     }
 
     fn describe(&self) -> String {

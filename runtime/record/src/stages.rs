@@ -117,6 +117,49 @@ pub struct ReplayParams {
     /// End this many seconds after the recording's first message.
     #[serde(default)]
     pub end_s: Option<f64>,
+    /// Times to play the recording (0: until stopped). Each pass after the first is stamped
+    /// later by the span of the one before plus [`LOOP_GAP_NS`], so that time keeps moving
+    /// forward.
+    #[serde(default = "default_loops")]
+    pub loops: u32,
+}
+
+fn default_loops() -> u32 {
+    1
+}
+
+/// Sensor time between the last message of one pass of a looped replay and the first of the
+/// next.
+pub const LOOP_GAP_NS: i64 = 1_000_000_000;
+
+/// What a replay reads: the file, the window and which recorded topic goes to which output.
+struct ReplaySource {
+    path: std::path::PathBuf,
+    window: Window,
+    outputs: HashMap<String, usize>,
+}
+
+impl ReplaySource {
+    /// One pass over the window, stamps moved by `offset_ns`; the first and last stamps seen
+    /// are kept in `span`.
+    fn pass(
+        &self,
+        offset_ns: i64,
+        span: std::sync::Arc<std::sync::Mutex<(i64, i64)>>,
+    ) -> Result<impl Iterator<Item = (usize, i64, Vec<u8>)> + Send + use<>, StageError> {
+        let rec = Recording::open(&self.path).map_err(StageError::failed)?;
+        let messages = rec.messages(&self.window).map_err(StageError::failed)?;
+        let outputs = self.outputs.clone();
+        Ok(messages.filter_map(move |m| {
+            let i = *outputs.get(&*m.topic)?;
+            let stamp = i64::try_from(m.log_time).unwrap_or(i64::MAX);
+            if let Ok(mut s) = span.lock() {
+                s.0 = s.0.min(stamp);
+                s.1 = s.1.max(stamp);
+            }
+            Some((i, stamp.saturating_add(offset_ns), m.data))
+        }))
+    }
 }
 
 fn replayed_topics(params: &ReplayParams) -> Result<Vec<PortSpec>, ParamError> {
@@ -331,14 +374,38 @@ impl Stage for ReplayStage {
             })
             .collect();
         window.topics = Some(outputs.keys().cloned().collect());
-        let messages = rec.messages(&window).map_err(StageError::failed)?;
-        let total = messages.total().and_then(|t| usize::try_from(t).ok());
-        let source = messages.filter_map(move |m| {
-            let i = *outputs.get(&*m.topic)?;
-            Some((i, i64::try_from(m.log_time).unwrap_or(i64::MAX), m.data))
-        });
+        let total = rec
+            .messages(&window)
+            .map_err(StageError::failed)?
+            .total()
+            .and_then(|t| usize::try_from(t).ok());
+        let source = ReplaySource {
+            path: params.path.into(),
+            window,
+            outputs,
+        };
+        let span = std::sync::Arc::new(std::sync::Mutex::new((i64::MAX, i64::MIN)));
+        let first = source.pass(0, span.clone())?;
+        let loops = params.loops;
+        // later passes open the file again when the one before has ended
+        let later = (1..)
+            .take_while(move |k| loops == 0 || *k < loops)
+            .flat_map(move |k: u32| {
+                let (first_ns, last_ns) = span.lock().map_or((0, 0), |s| *s);
+                let offset = (last_ns.saturating_sub(first_ns)).max(0).saturating_add(LOOP_GAP_NS);
+                match source.pass(offset.saturating_mul(i64::from(k)), span.clone()) {
+                    Ok(pass) => Some(pass),
+                    Err(e) => {
+                        tracing::error!("replay pass {}: {e}", k + 1);
+                        None
+                    }
+                }
+                .into_iter()
+                .flatten()
+            });
+        let total = total.filter(|_| loops > 0).map(|t| t * loops as usize);
         Ok(Self {
-            player: Player::streaming(source, total, params.pace, params.speed),
+            player: Player::streaming(first.chain(later), total, params.pace, params.speed),
         })
     }
 

@@ -26,9 +26,23 @@ use std::marker::PhantomData;
 /// that started it: `TAG done total`.
 pub const PROGRESS_TAG: &str = "@gprflow-progress";
 
-/// Reports progress (`done` of `total` units) to the launcher, which shows it as a bar.
+type ProgressSink = Box<dyn Fn(usize, usize) + Send + Sync>;
+
+static PROGRESS_SINK: std::sync::OnceLock<ProgressSink> = std::sync::OnceLock::new();
+
+/// Reports progress (`done` of `total` units; total 0: not known) to the launcher, which shows
+/// it as a bar, or to the sink set by [`show_progress_with`].
 pub fn report_progress(done: usize, total: usize) {
-    eprintln!("{PROGRESS_TAG} {done} {total}");
+    match PROGRESS_SINK.get() {
+        Some(sink) => sink(done, total),
+        None => eprintln!("{PROGRESS_TAG} {done} {total}"),
+    }
+}
+
+/// Sends this process's progress reports to `sink` instead of the launcher (a stage run in a
+/// command's own process, such as `gprflow replay`). Only the first call takes effect.
+pub fn show_progress_with(sink: impl Fn(usize, usize) + Send + Sync + 'static) {
+    let _ = PROGRESS_SINK.set(Box::new(sink));
 }
 
 /// Prefix of the stderr line by which a stage process hands its [`RunReport`] to the

@@ -141,6 +141,7 @@ impl InputBinding {
         TopicConfig::new(&self.topic)
             .buffer(self.buffer)
             .latest_only(self.latest_only)
+            .msg_type(&self.msg_type)
     }
 }
 
@@ -150,6 +151,7 @@ impl OutputBinding {
         TopicConfig::new(&self.topic)
             .buffer(self.buffer)
             .latest_only(self.latest_only)
+            .msg_type(&self.msg_type)
     }
 }
 

@@ -20,6 +20,8 @@ pub struct LaunchArgs {
     pub set: Vec<String>,
     /// Record to this file.
     pub record: Option<PathBuf>,
+    /// Topics to record instead of the graph's `record:` list.
+    pub record_topics: Vec<String>,
     /// Only this host's nodes.
     pub host: Option<String>,
     /// Seconds to wait for the other hosts.
@@ -32,6 +34,19 @@ pub struct LaunchArgs {
     pub report: Option<PathBuf>,
     /// Log filter, handed on to the stages.
     pub log: String,
+    /// Named bus.
+    pub bus: Option<String>,
+    /// Source nodes fed from outside the run.
+    pub external: Vec<String>,
+    /// Start-up handshake limit, seconds.
+    pub handshake_timeout_s: f64,
+}
+
+fn seconds_arg(flag: &str, value: f64) -> Result<std::time::Duration> {
+    if !(value.is_finite() && value > 0.0) {
+        bail!("{flag} {value}: must be a positive number of seconds");
+    }
+    Ok(std::time::Duration::from_secs_f64(value.min(1e6)))
 }
 
 fn parse_overrides(set: &[String]) -> Result<Vec<(String, String)>> {
@@ -78,13 +93,11 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
     let mut opts = LaunchOptions::new(exe);
     opts.record.clone_from(&args.record);
     opts.host.clone_from(&args.host);
-    if !(args.remote_timeout_s.is_finite() && args.remote_timeout_s > 0.0) {
-        bail!(
-            "--remote-timeout-s {}: must be a positive number of seconds",
-            args.remote_timeout_s
-        );
-    }
-    opts.remote_timeout = std::time::Duration::from_secs_f64(args.remote_timeout_s.min(1e6));
+    opts.remote_timeout = seconds_arg("--remote-timeout-s", args.remote_timeout_s)?;
+    opts.handshake_timeout = seconds_arg("--handshake-timeout-s", args.handshake_timeout_s)?;
+    opts.bus.clone_from(&args.bus);
+    opts.external.clone_from(&args.external);
+    opts.record_topics.clone_from(&args.record_topics);
     opts.buffer = args.buffer.max(1);
     opts.log_filter = Some(args.log.clone());
     let plan = launch::plan(&graph, &opts)?;
@@ -100,6 +113,19 @@ pub fn launch(args: &LaunchArgs) -> Result<ExitCode> {
         plan.run_id,
         plan.nodes.len()
     );
+    if let (Some(bus), false) = (&args.bus, plan.external.is_empty()) {
+        let topics: Vec<&str> = plan
+            .external
+            .iter()
+            .filter(|t| t.readers > 0)
+            .map(|t| t.config.name.as_str())
+            .collect();
+        eprintln!(
+            "gprflow: waiting up to {:.0} s for {} on bus `{bus}` (gprflow replay FILE --bus {bus})",
+            args.handshake_timeout_s,
+            topics.join(", ")
+        );
+    }
     let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::stderr());
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} {wide_bar} {pos}/{len} [{elapsed_precise}<{eta_precise}]")

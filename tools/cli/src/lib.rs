@@ -2,6 +2,7 @@
 //! commands, so that `main.rs` only parses arguments.
 
 pub mod bench_estimate;
+pub mod bus;
 pub mod calibrate;
 pub mod commands;
 pub mod convert;

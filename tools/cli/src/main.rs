@@ -44,6 +44,27 @@ impl From<InputFormat> for gprflow_ingest::SourceFormat {
     }
 }
 
+/// The bus a command talks on.
+#[derive(Debug, clap::Args)]
+#[group(required = true, multiple = false)]
+struct BusArgs {
+    /// A named bus: the one of `gprflow launch ... --bus NAME`.
+    #[arg(long, value_name = "NAME")]
+    bus: Option<String>,
+    /// The bus of one run of `gprflow launch` (without --bus), by the id it printed.
+    #[arg(long, value_name = "RUN_ID")]
+    run: Option<String>,
+}
+
+impl BusArgs {
+    fn name(self) -> gprflow_cli::bus::BusName {
+        match (self.bus, self.run) {
+            (Some(name), _) => gprflow_cli::bus::BusName::Named(name),
+            (None, run) => gprflow_cli::bus::BusName::Run(run.unwrap_or_default()),
+        }
+    }
+}
+
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run a graph: one process per node, optionally recorded.
@@ -53,6 +74,10 @@ enum Command {
     ///   gprflow launch graphs/localize.yaml -o out/loc.mcap --report out/loc-report.json
     ///   gprflow launch graphs/odometry.yaml --set recording=recordings/sim/basement-forward_backward.mcap -o out/odometry.mcap
     ///   gprflow launch graphs/localize.yaml --dry-run
+    ///
+    /// Fed from outside: `gprflow launch graphs/localize.yaml --bus live --external ingest`
+    /// runs everything but the `ingest` node, whose topics `gprflow replay FILE --bus live`
+    /// (or any publisher on bus `live`) then sends; `gprflow record --bus live` records it.
     ///
     /// Across machines, each runs its share: `gprflow launch graphs/toy-hosts.yaml --host robot`
     /// (and `--host base -o out.mcap` on the host that records).
@@ -66,6 +91,10 @@ enum Command {
         /// Record the graph's topics to this MCAP file.
         #[arg(short = 'o', long, visible_alias = "output", value_name = "MCAP")]
         record: Option<PathBuf>,
+        /// Record these topics (glob patterns, repeatable) instead of the graph's `record:`
+        /// list: `--record-topics '*'` records everything.
+        #[arg(long, value_name = "GLOB", num_args = 1.., requires = "record")]
+        record_topics: Vec<String>,
         /// Run only this host's share of the graph; topics to and from other hosts travel
         /// over zenoh as the graph's `hosts:` section says.
         #[arg(long)]
@@ -83,6 +112,18 @@ enum Command {
         /// time, peak RSS) and the run's wall time to this JSON file.
         #[arg(long, value_name = "FILE")]
         report: Option<PathBuf>,
+        /// Run on this named bus (shared memory that `gprflow replay`, `gprflow record` and
+        /// other runs on the same bus see) instead of one of the run's own.
+        #[arg(long, value_name = "NAME")]
+        bus: Option<String>,
+        /// Do not start this source node: its topics come from another process on the bus
+        /// (`gprflow replay`). Repeatable; needs --bus.
+        #[arg(long, value_name = "NODE", requires = "bus")]
+        external: Vec<String>,
+        /// Seconds each process waits for the processes it talks to at start-up (with
+        /// --external: for the outside publisher).
+        #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+        handshake_timeout_s: f64,
     },
     /// Run one stage as this process (the launcher uses it).
     ///
@@ -95,6 +136,71 @@ enum Command {
         /// Node spec written by the launcher (JSON).
         #[arg(long)]
         spec: PathBuf,
+    },
+    /// Publish a recording's topics on a bus, in stamp order, for a graph launched there.
+    ///
+    /// It waits until the readers the graph declared for each topic have attached, then sends
+    /// at the recorded pace (--rate) or as fast as they take it (--rate max); --loop plays it
+    /// until Ctrl-C, which ends every topic cleanly. Examples (`&`: the graph runs beside it,
+    /// as from a second terminal; --readers 0: send at once, to whoever listens):
+    ///   gprflow launch graphs/toy.yaml --bus live --external gen -o out/toy-live.mcap & gprflow replay recordings/toy.mcap --bus live --topics 'gen/*' --rate max; wait
+    ///   gprflow replay recordings/sim/basement-forward_backward.mcap --bus live --readers 0 --rate 4 --end 1
+    #[command(verbatim_doc_comment)]
+    Replay {
+        /// MCAP file.
+        file: PathBuf,
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Speed: a factor of the recorded pace (1: as recorded), or `max`: as fast as the
+        /// readers take it.
+        #[arg(long, default_value = "1", value_name = "X|max")]
+        rate: gprflow_cli::bus::Rate,
+        /// Play the recording again and again until Ctrl-C (each pass stamped after the one
+        /// before).
+        #[arg(long = "loop")]
+        repeat: bool,
+        /// Topics to publish: glob patterns over the recorded names (repeatable; default all).
+        #[arg(long, value_name = "GLOB", default_value = "*")]
+        topics: Vec<String>,
+        /// Publish recorded topic OLD as NEW: `--remap gpr/trace=ingest/gpr` (repeatable).
+        #[arg(long, value_name = "OLD=NEW")]
+        remap: Vec<String>,
+        /// Start this many seconds after the recording's first message.
+        #[arg(long, value_name = "SECONDS")]
+        start: Option<f64>,
+        /// End this many seconds after the recording's first message.
+        #[arg(long, value_name = "SECONDS")]
+        end: Option<f64>,
+        /// Readers to wait for on every topic (default: as many as the graph on the bus
+        /// declared; 0: send at once).
+        #[arg(long, value_name = "N")]
+        readers: Option<usize>,
+        /// Seconds to wait for the graph's readers.
+        #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
+        wait_s: f64,
+    },
+    /// Record the topics of a bus (a graph launched with --bus, or one run) to an MCAP file.
+    ///
+    /// It joins topics as it finds them (recording from then on) and ends when every one has
+    /// ended, after --duration-s, or on Ctrl-C (the file is complete either way). Example
+    /// (`&`: beside a graph on bus `rec` and a replay that feeds it):
+    ///   gprflow launch graphs/toy.yaml --bus rec --external gen & sleep 1; gprflow record --bus rec -o out/bus.mcap & sleep 1; gprflow replay recordings/toy.mcap --bus rec --topics 'gen/*' --rate max; wait
+    #[command(verbatim_doc_comment)]
+    Record {
+        /// Topics to record: glob patterns over `node/output` (default all).
+        #[arg(value_name = "GLOB", default_value = "*")]
+        topics: Vec<String>,
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Output MCAP file.
+        #[arg(short, long, value_name = "MCAP")]
+        output: PathBuf,
+        /// Stop after this many seconds.
+        #[arg(long, value_name = "SECONDS")]
+        duration_s: Option<f64>,
+        /// Seconds to wait for a first topic to record.
+        #[arg(long, default_value_t = 60.0, value_name = "SECONDS")]
+        wait_s: f64,
     },
     /// Show a recording's topics, types, counts, rates and time span.
     ///
@@ -494,23 +600,67 @@ fn main() -> ExitCode {
             graph,
             set,
             record,
+            record_topics,
             host,
             remote_timeout_s,
             buffer,
             dry_run,
             report,
+            bus,
+            external,
+            handshake_timeout_s,
         } => commands::launch(&commands::LaunchArgs {
             graph,
             set,
             record,
+            record_topics,
             host,
             remote_timeout_s,
             buffer,
             dry_run,
             report,
+            bus,
+            external,
+            handshake_timeout_s,
             log: cli.log.clone(),
         }),
         Command::Stage { kind, spec } => commands::stage(&kind, &spec),
+        Command::Replay {
+            file,
+            bus,
+            rate,
+            repeat,
+            topics,
+            remap,
+            start,
+            end,
+            readers,
+            wait_s,
+        } => gprflow_cli::bus::replay(&gprflow_cli::bus::ReplayArgs {
+            file,
+            bus: bus.name(),
+            rate,
+            loops: u32::from(!repeat),
+            topics,
+            remap,
+            start_s: start,
+            end_s: end,
+            readers,
+            wait_s,
+        }),
+        Command::Record {
+            topics,
+            bus,
+            output,
+            duration_s,
+            wait_s,
+        } => gprflow_cli::bus::record(&gprflow_cli::bus::RecordArgs {
+            topics,
+            bus: bus.name(),
+            output,
+            duration_s,
+            wait_s,
+        }),
         Command::Inspect { file, json, dump_json } => commands::inspect(&file, json, dump_json),
         Command::Recover { file, output } => commands::recover(&file, &output),
         Command::Stages => commands::stages(),

@@ -19,7 +19,7 @@ use std::time::Duration;
 
 pub use cleanup::{cleanup_run, leftover_resources, run_resource_dirs};
 pub use gprflow_stage::PROGRESS_TAG;
-pub use plan::{Plan, plan};
+pub use plan::{ExternalTopic, Plan, plan};
 pub use supervise::{LaunchEvent, LaunchObserver, LaunchReport, NodeOutcome, launch};
 
 /// Name of the recorder node the launcher adds.
@@ -62,6 +62,13 @@ pub struct LaunchOptions {
     pub stop_grace: Duration,
     /// Log filter handed to built-in stages (`--log`).
     pub log_filter: Option<String>,
+    /// Run on this named bus instead of a bus of the run's own, so that processes outside
+    /// the run (`gprflow replay`, `gprflow record`) see its topics.
+    pub bus: Option<String>,
+    /// Source nodes not started: their topics come from another process on the bus.
+    pub external: Vec<String>,
+    /// Record these topics (glob patterns) instead of those the graph's `record:` names.
+    pub record_topics: Vec<String>,
 }
 
 impl LaunchOptions {
@@ -76,6 +83,9 @@ impl LaunchOptions {
             remote_timeout: Duration::from_secs(120),
             stop_grace: Duration::from_secs(5),
             log_filter: None,
+            bus: None,
+            external: Vec::new(),
+            record_topics: Vec::new(),
         }
     }
 }

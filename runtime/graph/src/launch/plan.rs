@@ -19,6 +19,19 @@ pub struct Plan {
     pub prefix: String,
     /// Node specs with the executable that runs each.
     pub nodes: Vec<(NodeSpec, Option<String>)>,
+    /// The run is on a named bus that other processes share (`--bus`).
+    pub shared_bus: bool,
+    /// Topics of `--external` nodes: published from outside the run, read inside it.
+    pub external: Vec<ExternalTopic>,
+}
+
+/// A topic that a process outside the run publishes (`--external`).
+#[derive(Debug, Clone)]
+pub struct ExternalTopic {
+    /// Topic settings, as the run's readers open it.
+    pub config: gprflow_bus::TopicConfig,
+    /// Readers in the run: the outside publisher waits for them.
+    pub readers: usize,
 }
 
 fn new_run_id() -> String {
@@ -41,8 +54,18 @@ fn new_run_id() -> String {
 /// the host's zenoh settings cannot work.
 pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
     let run_id = new_run_id();
-    let prefix = format!("gf{run_id}_");
     let file = graph.file.display().to_string();
+    let prefix = match &opts.bus {
+        Some(name) => gprflow_bus::iox::bus_prefix(name).map_err(|e| LaunchError::Plan(format!("--bus: {e}")))?,
+        None => format!("gf{run_id}_"),
+    };
+    check_external(graph, opts)?;
+    if !opts.record_topics.is_empty() && opts.host.is_some() {
+        return Err(LaunchError::Plan(format!(
+            "{file}: --record-topics: not with --host (the graph's `record:` says what each host records)"
+        )));
+    }
+    let external = |node: &str| opts.external.iter().any(|n| n == node);
     let host_of = |node: &str| {
         graph
             .hosts
@@ -93,7 +116,13 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
         }
     };
     // `record:` in the graph selects topics; recording happens when a file is given
-    let matches_record = |topic: &str| graph.record.is_none() || graph.record_matches(topic);
+    let matches_record = |topic: &str| {
+        if opts.record_topics.is_empty() {
+            graph.record.is_none() || graph.record_matches(topic)
+        } else {
+            opts.record_topics.iter().any(|g| gprflow_bus::glob_matches(g, topic))
+        }
+    };
     let records = |topic: &str| recording && matches_record(topic);
     // with --host, a topic recorded on another host is sent there
     let recorded_on = |topic: &str| match this_host {
@@ -104,7 +133,26 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
     let mut nodes = Vec::new();
     let mut recorded = Vec::new();
     let mut routes: Vec<Route> = Vec::new();
-    for node in graph.nodes.iter().filter(|n| on_host(&n.name)) {
+    let mut external_topics = Vec::new();
+    for node in graph.nodes.iter().filter(|n| external(&n.name)) {
+        for port in &node.outputs {
+            let topic = format!("{}/{}", node.name, port.name);
+            let latest_only = topic_latest_only(graph, &node.name, &port.name);
+            let record = records(&topic);
+            if record {
+                recorded.push((topic.clone(), port.msg_type.clone(), latest_only));
+            }
+            let (local, _) = local_readers(graph, &node.name, &port.name, &on_host);
+            external_topics.push(ExternalTopic {
+                config: gprflow_bus::TopicConfig::new(&topic)
+                    .buffer(opts.buffer)
+                    .latest_only(latest_only)
+                    .msg_type(&port.msg_type),
+                readers: local + usize::from(record),
+            });
+        }
+    }
+    for node in graph.nodes.iter().filter(|n| on_host(&n.name) && !external(&n.name)) {
         let mut inputs = Vec::new();
         for input in &node.inputs {
             let topic = input.topic();
@@ -269,7 +317,44 @@ pub fn plan(graph: &Graph, opts: &LaunchOptions) -> Result<Plan, LaunchError> {
     if let Some(host) = this_host.filter(|_| !routes.is_empty()) {
         nodes.push((bridge_spec(graph, host, routes, &run_id, &prefix, opts)?, None));
     }
-    Ok(Plan { run_id, prefix, nodes })
+    Ok(Plan {
+        run_id,
+        prefix,
+        nodes,
+        shared_bus: opts.bus.is_some(),
+        external: external_topics,
+    })
+}
+
+/// `--external` names source nodes of the graph, on a named bus, without `--host`.
+fn check_external(graph: &Graph, opts: &LaunchOptions) -> Result<(), LaunchError> {
+    let file = graph.file.display();
+    for name in &opts.external {
+        let Some(node) = graph.nodes.iter().find(|n| &n.name == name) else {
+            let known: Vec<&str> = graph.nodes.iter().map(|n| n.name.as_str()).collect();
+            return Err(LaunchError::Plan(format!(
+                "{file}: --external `{name}`: no such node (nodes: {})",
+                known.join(", ")
+            )));
+        };
+        if !node.inputs.is_empty() {
+            return Err(LaunchError::Plan(format!(
+                "{file}: --external `{name}`: only source nodes (no inputs) can come from outside the run; `{name}` reads {}",
+                node.inputs.iter().map(|i| i.topic()).collect::<Vec<_>>().join(", ")
+            )));
+        }
+        if opts.bus.is_none() {
+            return Err(LaunchError::Plan(format!(
+                "{file}: --external `{name}`: give the named bus its topics come on (--bus NAME)"
+            )));
+        }
+        if opts.host.is_some() {
+            return Err(LaunchError::Plan(format!(
+                "{file}: --external `{name}`: not with --host (run the graph on one machine)"
+            )));
+        }
+    }
+    Ok(())
 }
 
 fn millis(d: Duration) -> u64 {

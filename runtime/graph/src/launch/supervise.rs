@@ -13,6 +13,8 @@ use std::time::{Duration, Instant};
 
 use gprflow_stage::{NodeSpec, PROGRESS_TAG, REPORT_TAG, RunReport};
 
+use gprflow_bus::iox::{DeclaredTopic, IoxTransport};
+
 use super::{LaunchError, LaunchOptions, POLL, Plan, STDERR_TAIL_LINES, cleanup_run};
 
 /// What the launcher tells its observer.
@@ -273,6 +275,9 @@ pub fn launch(
         what: format!("cannot create {}", dir.display()),
         source,
     })?;
+    // topics published from outside the run are declared with their readers first, so that
+    // the outside publisher waits for all of them
+    let _declared = declare_external(plan, stop)?;
     let (tx, rx) = sync_channel::<Line>(4096);
     let mut running: Vec<Running> = Vec::new();
     let mut start_error = None;
@@ -364,7 +369,16 @@ pub fn launch(
         }
     }
     drain(&rx, &running, observer);
-    let cleaned_up = cleanup_run(&plan.prefix);
+    drop(_declared);
+    // a named bus is shared: only what dead processes left is removed
+    let cleaned_up = if plan.shared_bus {
+        if let Ok(t) = IoxTransport::new("gprflow_cleanup", &plan.prefix, stop.clone()) {
+            t.cleanup_dead_nodes();
+        }
+        Vec::new()
+    } else {
+        cleanup_run(&plan.prefix)
+    };
     let _ = std::fs::remove_dir_all(&dir);
     if let Some(e) = start_error {
         return Err(e);
@@ -393,6 +407,26 @@ pub fn launch(
         cleaned_up,
         wall: started.elapsed(),
     })
+}
+
+/// Declares the `--external` topics on the run's bus; they stay declared while the result lives.
+fn declare_external(
+    plan: &Plan,
+    stop: &Arc<AtomicBool>,
+) -> Result<Option<(IoxTransport, Vec<DeclaredTopic>)>, LaunchError> {
+    if plan.external.is_empty() {
+        return Ok(None);
+    }
+    let fail = |e: gprflow_bus::BusError| LaunchError::Plan(format!("--external: {e}"));
+    let transport =
+        IoxTransport::new(&format!("gprflow_launch_{}", plan.run_id), &plan.prefix, stop.clone()).map_err(fail)?;
+    let declared = plan
+        .external
+        .iter()
+        .map(|t| transport.declare(&t.config, t.readers))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(fail)?;
+    Ok(Some((transport, declared)))
 }
 
 fn describe_status(status: ExitStatus) -> String {
