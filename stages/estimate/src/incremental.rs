@@ -72,7 +72,11 @@ pub struct IncrementalParams {
     /// At most this many variables relinearised per update (0: no limit), those furthest past
     /// their threshold first; the rest wait for the next updates. A loop closure moves a
     /// whole loop's worth of poses past the threshold at once; spreading their
-    /// relinearisation keeps each update short.
+    /// relinearisation keeps each update short. On long IMU runs the whole past keeps
+    /// moving (each refinement of the bias turns the trajectory behind it), more variables
+    /// cross the threshold per update than this takes, and the waiting ones
+    /// ([`IncrementalReport::relinearize_pending`]) pile up (4282 by state 4490 of the
+    /// simulator's 20.9-minute basement run) until the estimate diverges (state 4643).
     pub max_relinearized_per_update: usize,
     /// Compute the newest pose's marginal covariance after each update.
     pub newest_covariance: bool,
@@ -107,6 +111,9 @@ pub struct IncrementalReport {
     pub solved: usize,
     /// Largest separator of a re-eliminated group (scalar dimension).
     pub max_separator: usize,
+    /// Variables past their relinearisation threshold left for later updates (see
+    /// [`IncrementalParams::max_relinearized_per_update`]).
+    pub relinearize_pending: usize,
 }
 
 /// A Gaussian conditional `r dx_G + s dx_sep = d` of a group, and the marginal factor on
@@ -292,6 +299,7 @@ impl IncrementalSmoother {
         }
         let orphans = result?;
         self.back_substitute(&affected, &orphans, values, &mut report)?;
+        report.relinearize_pending = self.over_threshold.len();
         self.newest_cov = None;
         if self.params.newest_covariance
             && let Some(g) = self.newest
@@ -535,10 +543,13 @@ impl IncrementalSmoother {
                 match damped {
                     Some(c) => c,
                     None => {
-                        // Indefinite: seen on a 20-minute IMU run (eigenvalues -1e6 to 2e8),
-                        // not understood yet. Mirror the negative eigenvalues (a modified
-                        // Cholesky) so that the run goes on; the final batch solve corrects
-                        // what this step gets wrong.
+                        // Indefinite: seen on a 20-minute IMU run (eigenvalues -1e6 to 2e8)
+                        // only after its estimate had diverged (velocities of 1e5 m/s: the
+                        // relinearisation backlog, see `max_relinearized_per_update`); a
+                        // square-root (QR) elimination removed these warnings there but not
+                        // the divergence, at 2-4x the cost. Mirror the negative eigenvalues
+                        // (a modified Cholesky) so that the run goes on; the final batch
+                        // solve corrects what this step gets wrong.
                         let eig = hgg.clone().symmetric_eigen();
                         let floor = 1e-9 * eig.eigenvalues.amax().max(1.0);
                         tracing::warn!(

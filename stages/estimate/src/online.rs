@@ -610,6 +610,7 @@ impl OnlineEstimator {
                 relinearized = inc.relinearized,
                 solved = inc.solved,
                 max_separator = inc.max_separator,
+                relinearize_pending = inc.relinearize_pending,
                 "estimate: update slower than the state period"
             );
         }
