@@ -24,7 +24,7 @@
 //!   [`Radargram::dropped`] with the bytes present. Everything before it is returned.
 //! - `rh_tag` is not checked (`GSSI_FILE____032.DZT` has `0x0700`, not the documented `0x00ff`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::error::{DropReason, Dropped, Error, Record, Result};
 use crate::radargram::{Format, Radargram, RawSamples, RawTrace, ascii_text, le_bytes, signed_le_samples};
@@ -286,98 +286,247 @@ fn first_header(bytes: &[u8], path: &Path) -> Result<DztHeader> {
     })
 }
 
-/// Parses the bytes of a DZT file; `path` only names the file in errors and in the result.
-pub fn parse_dzt(bytes: &[u8], path: &Path) -> Result<(DztHeader, Radargram)> {
-    let header = first_header(bytes, path)?;
-    let bad = |field: &str, value: String, why: String| Error::BadField {
-        file: path.to_owned(),
-        record: Record::Header,
-        field: field.to_owned(),
-        value,
-        why,
-    };
-    if !matches!(header.bits_per_sample, 8 | 16 | 32) {
-        let bits = header.bits_per_sample.to_string();
-        return Err(bad("rh_bits", bits, "not 8, 16 or 32".into()));
-    }
-    if header.samples_per_trace == 0 {
-        return Err(bad("rh_nsamp", "0".into(), "no samples per trace".into()));
-    }
-    if header.channels == 0 {
-        return Err(bad("rh_nchan", "0".into(), "no channels".into()));
-    }
-    if !(header.range_ns.is_finite() && header.range_ns > 0.0) {
-        let range = header.range_ns.to_string();
-        return Err(bad("rhf_range", range, "not a positive time range (ns)".into()));
-    }
-    let channels = usize::from(header.channels);
-    let headers_bytes = channels * DZT_HEADER_BYTES;
-    if bytes.len() < headers_bytes {
-        return Err(Error::Truncated {
+/// Where a checked DZT file's scans are, and how they read.
+#[derive(Debug, Clone)]
+struct Layout {
+    header: DztHeader,
+    offset: usize,
+    trace_bytes: usize,
+    scan_bytes: usize,
+    /// Scans per metre in survey-wheel mode.
+    spm: Option<f64>,
+    /// Scans per second in time mode.
+    sps: Option<f64>,
+}
+
+impl Layout {
+    /// Checks the header of a `file_len`-byte file from its first bytes `head` (at least the
+    /// channel headers, when the file has them).
+    fn check(head: &[u8], file_len: usize, path: &Path) -> Result<Self> {
+        let header = first_header(head, path)?;
+        let bad = |field: &str, value: String, why: String| Error::BadField {
             file: path.to_owned(),
             record: Record::Header,
-            got: bytes.len(),
-            want: headers_bytes,
-        });
-    }
-    let offset = header.data_offset_bytes();
-    if offset < headers_bytes {
-        let why = format!("data offset {offset} B lies inside the {channels} channel header(s)");
-        return Err(bad("rh_data", header.data_field.to_string(), why));
-    }
-    if offset > bytes.len() {
-        let len = bytes.len();
-        let why = format!("data offset {offset} B is past the end of the file ({len} B)");
-        return Err(bad("rh_data", header.data_field.to_string(), why));
+            field: field.to_owned(),
+            value,
+            why,
+        };
+        if !matches!(header.bits_per_sample, 8 | 16 | 32) {
+            let bits = header.bits_per_sample.to_string();
+            return Err(bad("rh_bits", bits, "not 8, 16 or 32".into()));
+        }
+        if header.samples_per_trace == 0 {
+            return Err(bad("rh_nsamp", "0".into(), "no samples per trace".into()));
+        }
+        if header.channels == 0 {
+            return Err(bad("rh_nchan", "0".into(), "no channels".into()));
+        }
+        if !(header.range_ns.is_finite() && header.range_ns > 0.0) {
+            let range = header.range_ns.to_string();
+            return Err(bad("rhf_range", range, "not a positive time range (ns)".into()));
+        }
+        let channels = usize::from(header.channels);
+        let headers_bytes = channels * DZT_HEADER_BYTES;
+        if file_len < headers_bytes {
+            return Err(Error::Truncated {
+                file: path.to_owned(),
+                record: Record::Header,
+                got: file_len,
+                want: headers_bytes,
+            });
+        }
+        let offset = header.data_offset_bytes();
+        if offset < headers_bytes {
+            let why = format!("data offset {offset} B lies inside the {channels} channel header(s)");
+            return Err(bad("rh_data", header.data_field.to_string(), why));
+        }
+        if offset > file_len {
+            let why = format!("data offset {offset} B is past the end of the file ({file_len} B)");
+            return Err(bad("rh_data", header.data_field.to_string(), why));
+        }
+        let trace_bytes = usize::from(header.samples_per_trace) * header.bytes_per_sample();
+        let spm = f64::from(header.scans_per_metre);
+        let sps = f64::from(header.scans_per_second);
+        let wheel_mode = spm.is_finite() && spm > 0.0;
+        let timed = !wheel_mode && sps.is_finite() && sps > 0.0;
+        Ok(Self {
+            offset,
+            trace_bytes,
+            scan_bytes: trace_bytes.saturating_mul(channels),
+            spm: wheel_mode.then_some(spm),
+            sps: timed.then_some(sps),
+            header,
+        })
     }
 
-    let samples = usize::from(header.samples_per_trace);
-    let trace_bytes = samples * header.bytes_per_sample();
-    let scan_bytes = trace_bytes.saturating_mul(channels);
-    let data = bytes.get(offset..).unwrap_or_default();
-    let scans = data.chunks_exact(scan_bytes);
-    let mut dropped = Vec::new();
-    if !scans.remainder().is_empty() {
-        dropped.push(Dropped {
-            file: path.to_owned(),
-            record: Record::Trace(data.len() / scan_bytes),
-            reason: DropReason::Truncated {
-                got: scans.remainder().len(),
-                want: scan_bytes,
-            },
-        });
-    }
-
-    let spm = f64::from(header.scans_per_metre);
-    let sps = f64::from(header.scans_per_second);
-    let wheel_mode = spm.is_finite() && spm > 0.0;
-    let timed = !wheel_mode && sps.is_finite() && sps > 0.0;
-    let mut traces = Vec::with_capacity(data.len() / trace_bytes);
-    for (scan, scan_data) in scans.enumerate() {
-        let distance_m = if wheel_mode { scan as f64 / spm } else { f64::NAN };
-        let stamp_ns = timed.then(|| (scan as f64 * 1e9 / sps).round() as i64);
-        for (channel, trace) in (0..header.channels).zip(scan_data.chunks_exact(trace_bytes)) {
-            traces.push(RawTrace {
+    /// The traces of scan number `scan`, from its bytes.
+    fn traces<'a>(&self, scan: usize, bytes: &'a [u8]) -> impl Iterator<Item = RawTrace> + 'a {
+        let distance_m = self.spm.map_or(f64::NAN, |spm| scan as f64 / spm);
+        let stamp_ns = self.sps.map(|sps| (scan as f64 * 1e9 / sps).round() as i64);
+        let bits = self.header.bits_per_sample;
+        (0..self.header.channels)
+            .zip(bytes.chunks_exact(self.trace_bytes))
+            .map(move |(channel, trace)| RawTrace {
                 channel,
                 stamp_ns,
                 distance_m,
-                samples: decode_samples(trace, header.bits_per_sample),
-            });
+                samples: decode_samples(trace, bits),
+            })
+    }
+
+    /// The file's description, without its traces.
+    fn radargram(&self, path: &Path) -> Radargram {
+        let samples = usize::from(self.header.samples_per_trace);
+        Radargram {
+            source: path.to_owned(),
+            format: Format::Dzt,
+            channels: self.header.channels,
+            samples_per_trace: samples,
+            sample_interval_ns: f64::from(self.header.range_ns) / samples as f64,
+            time_zero_ns: 0.0,
+            center_frequency_hz: self.header.center_frequency_hz(),
+            traces: Vec::new(),
+            dropped: Vec::new(),
         }
     }
 
-    let radargram = Radargram {
-        source: path.to_owned(),
-        format: Format::Dzt,
-        channels: header.channels,
-        samples_per_trace: samples,
-        sample_interval_ns: f64::from(header.range_ns) / samples as f64,
-        time_zero_ns: 0.0,
-        center_frequency_hz: header.center_frequency_hz(),
-        traces,
-        dropped,
-    };
-    Ok((header, radargram))
+    fn truncated(&self, path: &Path, scan: usize, got: usize) -> Dropped {
+        Dropped {
+            file: path.to_owned(),
+            record: Record::Trace(scan),
+            reason: DropReason::Truncated {
+                got,
+                want: self.scan_bytes,
+            },
+        }
+    }
+}
+
+/// Parses the bytes of a DZT file; `path` only names the file in errors and in the result.
+pub fn parse_dzt(bytes: &[u8], path: &Path) -> Result<(DztHeader, Radargram)> {
+    let layout = Layout::check(bytes, bytes.len(), path)?;
+    let data = bytes.get(layout.offset..).unwrap_or_default();
+    let scans = data.chunks_exact(layout.scan_bytes);
+    let mut radargram = layout.radargram(path);
+    if !scans.remainder().is_empty() {
+        radargram
+            .dropped
+            .push(layout.truncated(path, data.len() / layout.scan_bytes, scans.remainder().len()));
+    }
+    radargram.traces = scans
+        .enumerate()
+        .flat_map(|(scan, scan_data)| layout.traces(scan, scan_data))
+        .collect();
+    Ok((layout.header, radargram))
+}
+
+/// A DZT file read scan by scan from disk: memory does not grow with its length. Yields the
+/// traces [`read_dzt`] would return, in the same order; a scan cut short at the end is
+/// reported in [`DztStream::dropped`] once the stream has ended.
+#[derive(Debug)]
+pub struct DztStream {
+    layout: Layout,
+    path: PathBuf,
+    reader: std::io::BufReader<std::fs::File>,
+    scan: usize,
+    buffer: Vec<u8>,
+    pending: std::collections::VecDeque<RawTrace>,
+    /// Records skipped so far (a cut-short last scan, a read error).
+    pub dropped: Vec<Dropped>,
+    done: bool,
+}
+
+impl DztStream {
+    /// Opens `path` and checks its header; returns the header and the file's description (its
+    /// `traces` empty: they come from the stream).
+    ///
+    /// # Errors
+    /// As [`read_dzt`] for the header.
+    pub fn open(path: &Path) -> Result<(DztHeader, Radargram, Self)> {
+        use std::io::{Read, Seek};
+        let io = |source| Error::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let mut file = std::fs::File::open(path).map_err(io)?;
+        let len = usize::try_from(file.metadata().map_err(io)?.len()).unwrap_or(usize::MAX);
+        // the first header says how many there are
+        let mut head = Vec::new();
+        (&mut file)
+            .take(DZT_HEADER_BYTES as u64)
+            .read_to_end(&mut head)
+            .map_err(io)?;
+        let channels = first_header(&head, path).map_or(1, |h| usize::from(h.channels).max(1));
+        (&mut file)
+            .take(((channels - 1) * DZT_HEADER_BYTES) as u64)
+            .read_to_end(&mut head)
+            .map_err(io)?;
+        let layout = Layout::check(&head, len, path)?;
+        file.seek(std::io::SeekFrom::Start(layout.offset as u64)).map_err(io)?;
+        let radargram = layout.radargram(path);
+        Ok((
+            layout.header.clone(),
+            radargram,
+            Self {
+                buffer: vec![0; layout.scan_bytes],
+                layout,
+                path: path.to_owned(),
+                reader: std::io::BufReader::with_capacity(1 << 16, file),
+                scan: 0,
+                pending: std::collections::VecDeque::new(),
+                dropped: Vec::new(),
+                done: false,
+            },
+        ))
+    }
+
+    /// Scans in the file (complete ones), from its length.
+    pub fn scans(&self) -> usize {
+        let len = self.reader.get_ref().metadata().map_or(0, |m| m.len());
+        usize::try_from(len).unwrap_or(0).saturating_sub(self.layout.offset) / self.layout.scan_bytes.max(1)
+    }
+
+    /// Reads the next scan into `pending`; false at the end.
+    fn read_scan(&mut self) -> bool {
+        use std::io::Read;
+        let mut got = 0;
+        while got < self.buffer.len() {
+            match self.reader.read(&mut self.buffer[got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    tracing::warn!(
+                        "{}: read error at scan {}: {e}; the scans before it are kept",
+                        self.path.display(),
+                        self.scan
+                    );
+                    self.dropped.push(self.layout.truncated(&self.path, self.scan, got));
+                    return false;
+                }
+            }
+        }
+        if got < self.buffer.len() {
+            if got > 0 {
+                self.dropped.push(self.layout.truncated(&self.path, self.scan, got));
+            }
+            return false;
+        }
+        self.pending.extend(self.layout.traces(self.scan, &self.buffer));
+        self.scan += 1;
+        true
+    }
+}
+
+impl Iterator for DztStream {
+    type Item = RawTrace;
+
+    fn next(&mut self) -> Option<RawTrace> {
+        if self.pending.is_empty() && !self.done && !self.read_scan() {
+            self.done = true;
+        }
+        self.pending.pop_front()
+    }
 }
 
 /// Little-endian samples; 8 and 16 bits unsigned with the mid-scale offset removed.

@@ -16,7 +16,7 @@ use gprflow_record::{Recording, seconds_window};
 use crate::cmu::CmuSequence;
 use crate::error::{Error, Result};
 use crate::format::SourceFormat;
-use crate::radargram::{Format, Radargram, RawSamples};
+use crate::radargram::{Format, Radargram, RawSamples, RawTrace};
 
 /// What a loaded message is: one of the `ingest` stage's outputs, whose declaration order is
 /// the output index (`port as usize`).
@@ -242,29 +242,67 @@ fn center_frequency(r: &Radargram, options: &LoadOptions) -> f64 {
 
 /// Traces of a radargram; a wheel message per trace when the file gives distances.
 fn load_radargram(r: &Radargram, options: &LoadOptions) -> Loaded {
-    let fc = center_frequency(r, options);
+    let mut messages = TraceMessages::new(r, options);
     let mut loaded = Loaded {
         dropped: r.dropped.iter().map(ToString::to_string).collect(),
         ..Loaded::default()
     };
-    let period_ns = options.trace_interval_s * 1e9;
-    // scan index per channel: traces of one scan share a stamp
-    let channels = usize::from(r.channels.max(1));
-    let mut last_distance: Option<f64> = None;
-    let mut last_stamp = i64::MIN;
     for (i, t) in r.traces.iter().enumerate() {
-        let scan = i / channels;
+        messages.push(i, t, &mut loaded.messages);
+    }
+    loaded.dropped.append(&mut messages.corrected);
+    loaded
+}
+
+/// Turns a radargram's traces, in file order, into trace and wheel messages (one trace at a
+/// time: the same for a file read whole and one streamed).
+#[derive(Debug)]
+struct TraceMessages {
+    source: PathBuf,
+    channels: usize,
+    sample_interval_ns: f64,
+    time_zero_ns: f64,
+    center_frequency_hz: f64,
+    trace_interval_s: f64,
+    last_distance: Option<f64>,
+    last_stamp: i64,
+    /// Traces published at a corrected stamp: one line each.
+    corrected: Vec<String>,
+}
+
+impl TraceMessages {
+    fn new(r: &Radargram, options: &LoadOptions) -> Self {
+        Self {
+            source: r.source.clone(),
+            channels: usize::from(r.channels.max(1)),
+            sample_interval_ns: r.sample_interval_ns,
+            time_zero_ns: r.time_zero_ns,
+            center_frequency_hz: center_frequency(r, options),
+            trace_interval_s: options.trace_interval_s,
+            last_distance: None,
+            last_stamp: i64::MIN,
+            corrected: Vec::new(),
+        }
+    }
+
+    /// The messages of trace number `i` (in file order), appended to `out`.
+    fn push(&mut self, i: usize, t: &RawTrace, out: &mut Vec<(Port, i64, Vec<u8>)>) {
+        // scan index per channel: traces of one scan share a stamp
+        let scan = i / self.channels;
+        let period_ns = self.trace_interval_s * 1e9;
         let mut stamp = t.stamp_ns.unwrap_or((scan as f64 * period_ns).round() as i64);
-        if stamp < last_stamp {
+        if stamp < self.last_stamp {
             // a clock going back (a DT1's time of day past midnight): the trace keeps its
             // place in the line, published at the previous stamp, and is reported
-            loaded.dropped.push(format!(
-                "{}: trace {i}: stamp goes back from {last_stamp} to {stamp} ns: published at {last_stamp} ns",
-                r.source.display()
+            self.corrected.push(format!(
+                "{}: trace {i}: stamp goes back from {} to {stamp} ns: published at {} ns",
+                self.source.display(),
+                self.last_stamp,
+                self.last_stamp
             ));
-            stamp = last_stamp;
+            stamp = self.last_stamp;
         }
-        last_stamp = stamp;
+        self.last_stamp = stamp;
         let (i16s, i32s): (Cow<'_, [i16]>, Cow<'_, [i32]>) = match &t.samples {
             RawSamples::I16(v) => (Cow::Borrowed(v), Cow::Borrowed(&[])),
             RawSamples::I32(v) => (Cow::Borrowed(&[]), Cow::Borrowed(v)),
@@ -272,31 +310,129 @@ fn load_radargram(r: &Radargram, options: &LoadOptions) -> Loaded {
         let msg = Trace {
             header: Header::new(stamp, "gpr"),
             channel: t.channel,
-            sample_interval_ns: r.sample_interval_ns,
-            time_zero_ns: r.time_zero_ns,
-            center_frequency_hz: fc,
+            sample_interval_ns: self.sample_interval_ns,
+            time_zero_ns: self.time_zero_ns,
+            center_frequency_hz: self.center_frequency_hz,
             distance_m: t.distance_m,
             samples_i16: i16s,
             samples_i32: i32s,
             samples_f32: Cow::Borrowed(&[]),
         };
-        loaded.messages.push((Port::Gpr, stamp, encode(&msg)));
+        out.push((Port::Gpr, stamp, encode(&msg)));
         if t.channel == 0 && t.distance_m.is_finite() {
-            let speed = match last_distance {
-                Some(d) => (t.distance_m - d) / options.trace_interval_s,
+            let speed = match self.last_distance {
+                Some(d) => (t.distance_m - d) / self.trace_interval_s,
                 None => 0.0,
             };
-            last_distance = Some(t.distance_m);
+            self.last_distance = Some(t.distance_m);
             let w = WheelOdometry {
                 header: Header::new(stamp, "odom"),
                 distance_m: t.distance_m,
                 ticks: 0,
                 speed_mps: speed,
             };
-            loaded.messages.push((Port::Wheel, stamp, encode(&w)));
+            out.push((Port::Wheel, stamp, encode(&w)));
         }
     }
-    loaded
+}
+
+/// A DZT file streamed from disk as the `ingest` stage's messages (what [`load`] gives for
+/// it, in the same order), scan by scan: memory does not grow with the file. Wheel messages
+/// are scaled as they pass; skipped and corrected records are logged as warnings naming the
+/// file.
+pub struct DztMessages {
+    traces: crate::dzt::DztStream,
+    convert: TraceMessages,
+    index: usize,
+    queue: std::collections::VecDeque<(Port, i64, Vec<u8>)>,
+    wheel_scale: f64,
+    warned: usize,
+    /// Messages in all (traces, and wheel messages in survey-wheel mode).
+    pub total: usize,
+    /// What was read, for logs.
+    pub summary: String,
+}
+
+impl std::fmt::Debug for DztMessages {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DztMessages")
+            .field("summary", &self.summary)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Warnings a streamed source logs one by one before it only counts them.
+const WARN_AT_MOST: usize = 20;
+
+impl DztMessages {
+    /// Opens `path` and checks its header.
+    ///
+    /// # Errors
+    /// As [`crate::dzt::read_dzt`] for the header.
+    pub fn open(path: &Path, options: &LoadOptions) -> Result<Self> {
+        let (h, r, traces) = crate::dzt::DztStream::open(path)?;
+        let scans = traces.scans();
+        let wheel = usize::from(h.scans_per_metre.is_finite() && h.scans_per_metre > 0.0);
+        Ok(Self {
+            convert: TraceMessages::new(&r, options),
+            summary: format!(
+                "DZT (streamed): {} traces x {} samples, {} channel(s), {} ns range, antenna {:?}",
+                scans * usize::from(r.channels),
+                r.samples_per_trace,
+                r.channels,
+                h.range_ns,
+                h.antenna_name
+            ),
+            total: scans * (usize::from(r.channels) + wheel),
+            traces,
+            index: 0,
+            queue: std::collections::VecDeque::new(),
+            wheel_scale: options.wheel_scale,
+            warned: 0,
+        })
+    }
+
+    fn warn(&mut self, what: &str) {
+        if self.warned < WARN_AT_MOST {
+            tracing::warn!("ingest: skipped {what}");
+        }
+        self.warned += 1;
+    }
+}
+
+impl Iterator for DztMessages {
+    type Item = (Port, i64, Vec<u8>);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        while self.queue.is_empty() {
+            let Some(trace) = self.traces.next() else {
+                for d in std::mem::take(&mut self.traces.dropped) {
+                    self.warn(&d.to_string());
+                }
+                if self.warned > WARN_AT_MOST {
+                    tracing::warn!("ingest: ... {} records skipped or corrected in all", self.warned);
+                }
+                return None;
+            };
+            let mut out = Vec::with_capacity(2);
+            self.convert.push(self.index, &trace, &mut out);
+            self.index += 1;
+            for line in std::mem::take(&mut self.convert.corrected) {
+                self.warn(&line);
+            }
+            for (port, stamp, payload) in out {
+                if port == Port::Wheel && self.wheel_scale != 1.0 {
+                    match scaled_wheel(&payload, self.wheel_scale, &self.convert.source, stamp) {
+                        Ok(scaled) => self.queue.push_back((port, stamp, scaled)),
+                        Err(why) => self.warn(&why),
+                    }
+                } else {
+                    self.queue.push_back((port, stamp, payload));
+                }
+            }
+        }
+        self.queue.pop_front()
+    }
 }
 
 fn load_cmu(seq: &CmuSequence, options: &LoadOptions) -> Loaded {

@@ -10,7 +10,7 @@ use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::format::SourceFormat;
-use crate::load::{LoadOptions, McapStream, Port, TopicMap, load};
+use crate::load::{DztMessages, LoadOptions, McapStream, Port, TopicMap, load};
 
 /// Parameters of the `ingest` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -115,7 +115,18 @@ impl Stage for IngestStage {
                 player: Player::streaming(Box::new(source), total, params.pace, params.speed),
             });
         }
-        // The other formats are read whole (their readers take the file at once).
+        if format == SourceFormat::Dzt {
+            // streamed scan by scan: memory does not grow with the file
+            let stream = DztMessages::open(path, &options).map_err(StageError::failed)?;
+            tracing::info!("ingest: {}: {}", params.source, stream.summary);
+            let total = (params.start_s.is_none() && params.end_s.is_none()).then_some(stream.total);
+            let source = window_from_first(stream, params.start_s, params.end_s)
+                .map(|(port, stamp, data)| (port as usize, stamp, data));
+            return Ok(Self {
+                player: Player::streaming(Box::new(source), total, params.pace, params.speed),
+            });
+        }
+        // DT1 and CMU-GPR are read whole (their readers take the files at once).
         let loaded = load(path, format, &options).map_err(StageError::failed)?;
         tracing::info!("ingest: {}: {}", params.source, loaded.summary);
         for d in loaded.dropped.iter().take(20) {
@@ -141,6 +152,25 @@ impl Stage for IngestStage {
     fn produce(&mut self, out: &mut Outputs) -> Result<Produce, StageError> {
         self.player.produce(out)
     }
+}
+
+/// The messages of `source` (in stamp order) from `start_s` to `end_s` seconds after its first
+/// message.
+fn window_from_first(
+    source: impl Iterator<Item = (Port, i64, Vec<u8>)>,
+    start_s: Option<f64>,
+    end_s: Option<f64>,
+) -> impl Iterator<Item = (Port, i64, Vec<u8>)> {
+    let mut first = None;
+    source
+        .map(move |m| {
+            let first = *first.get_or_insert(m.1);
+            let at = |s: f64| first.saturating_add((s * 1e9).round() as i64);
+            (start_s.map(at), end_s.map(at), m)
+        })
+        .take_while(|(_, end, m)| end.is_none_or(|e| m.1 < e))
+        .filter(|(start, _, m)| start.is_none_or(|s| m.1 >= s))
+        .map(|(_, _, m)| m)
 }
 
 #[cfg(test)]

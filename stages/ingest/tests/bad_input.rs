@@ -642,3 +642,50 @@ proptest! {
         prop_assert_eq!(rows.len(), stamps.len());
     }
 }
+
+#[test]
+fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
+    use gprflow_ingest::SourceFormat;
+    use gprflow_ingest::load::{DztMessages, LoadOptions, load};
+    let dir = tempfile::tempdir().expect("tempdir");
+    // two channels in survey-wheel mode (a wheel message per scan), 16 bits, 50 scans
+    let spec = DztSpec {
+        channels: 2,
+        scans_per_metre: 20.0,
+        ..DztSpec::default()
+    };
+    let data: Vec<u8> = (0..50)
+        .flat_map(|scan| spec.encode(&(0..8).map(|i| scan * 10 + i - 40).collect::<Vec<_>>()))
+        .collect();
+    let file = spec.file(&data);
+    let real = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/real-gpr/GSSI_FILE____032.DZT");
+    let real_bytes = std::fs::read(&real).expect("the real DZT");
+    let options = LoadOptions {
+        wheel_scale: 1.01,
+        ..LoadOptions::default()
+    };
+    for (name, bytes) in [
+        ("whole.DZT", file.clone()),
+        // cut inside scan 37: 37 complete scans, the cut one reported
+        ("cut.DZT", file[..file.len() - 13 * 16 - 5].to_vec()),
+        ("real.DZT", real_bytes.clone()),
+        ("real-cut.DZT", real_bytes[..real_bytes.len() / 2 + 3].to_vec()),
+    ] {
+        let path = dir.path().join(name);
+        std::fs::write(&path, &bytes).expect("write");
+        let whole = load(&path, SourceFormat::Dzt, &options).expect("loads");
+        let streamed: Vec<_> = DztMessages::open(&path, &options).expect("opens").collect();
+        assert!(!whole.messages.is_empty(), "{name}");
+        assert!(
+            whole.messages == streamed,
+            "{name}: the stream gives the same messages in the same order"
+        );
+        let cut = name.contains("cut");
+        assert_eq!(
+            whole.dropped.iter().any(|d| d.contains("truncated")),
+            cut,
+            "{name}: {:?}",
+            whole.dropped
+        );
+    }
+}
