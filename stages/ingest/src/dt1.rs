@@ -320,6 +320,78 @@ pub fn parse_hd(text: &str, path: &Path) -> Result<HdHeader> {
 /// Parses the bytes of a DT1 file against its HD; the paths only name the files in errors and
 /// in the result.
 pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) -> Result<Dt1Line> {
+    let checked = check_records(&hd, dt1_path, bytes.len(), |at| {
+        bytes.get(at..).and_then(Dt1TraceHeader::parse)
+    })?;
+    let mut trace_headers = Vec::with_capacity(checked.complete);
+    let mut traces = Vec::with_capacity(checked.complete);
+    for i in 0..checked.complete {
+        let record = bytes
+            .get(i * checked.record_bytes..(i + 1) * checked.record_bytes)
+            .unwrap_or_default();
+        let Some(header) = Dt1TraceHeader::parse(record) else {
+            break;
+        };
+        traces.push(checked.trace(&header, &record[DT1_TRACE_HEADER_BYTES..]));
+        trace_headers.push(header);
+    }
+    let mut radargram = checked.radargram(&hd, dt1_path);
+    radargram.traces = traces;
+    Ok(Dt1Line {
+        hd_path: hd_path.to_owned(),
+        hd,
+        trace_headers,
+        radargram,
+    })
+}
+
+/// What the check of every trace header found: the layout of the complete traces.
+#[derive(Debug, Clone)]
+struct Checked {
+    complete: usize,
+    record_bytes: usize,
+    width: usize,
+    clock_filled: bool,
+    metres_per_unit: f64,
+    dropped: Vec<Dropped>,
+}
+
+impl Checked {
+    fn trace(&self, h: &Dt1TraceHeader, data: &[u8]) -> RawTrace {
+        RawTrace {
+            channel: 0,
+            stamp_ns: (self.clock_filled && h.time_of_day_s.is_finite())
+                .then(|| (f64::from(h.time_of_day_s) * 1e9).round() as i64),
+            distance_m: f64::from(h.position) * self.metres_per_unit,
+            samples: signed_le_samples(data, self.width),
+        }
+    }
+
+    /// The line's description, without its traces.
+    fn radargram(&self, hd: &HdHeader, dt1_path: &Path) -> Radargram {
+        let interval_ns = hd.sample_interval_ns();
+        Radargram {
+            source: dt1_path.to_owned(),
+            format: Format::Dt1,
+            channels: 1,
+            samples_per_trace: hd.points_per_trace,
+            sample_interval_ns: interval_ns,
+            time_zero_ns: hd.timezero_at_point.map_or(0.0, |point| -(point - 1.0) * interval_ns),
+            center_frequency_hz: hd.nominal_frequency_mhz.map_or(f64::NAN, |mhz| mhz * 1e6),
+            traces: Vec::new(),
+            dropped: self.dropped.clone(),
+        }
+    }
+}
+
+/// Checks every trace header of a `len`-byte DT1 file (`header_at(offset)`: the header at
+/// that offset, `None` when fewer than 128 bytes are left) against the HD and each other.
+fn check_records(
+    hd: &HdHeader,
+    dt1_path: &Path,
+    len: usize,
+    mut header_at: impl FnMut(usize) -> Option<Dt1TraceHeader>,
+) -> Result<Checked> {
     let file = || dt1_path.to_owned();
     let disagree = |record, field, found: String, other: String| Error::Disagree {
         file: file(),
@@ -329,18 +401,22 @@ pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) ->
         other,
     };
     let points = hd.points_per_trace;
-    let metres_per_unit = hd.metres_per_unit().unwrap_or(1.0);
-    let mut trace_headers = Vec::new();
-    let mut samples = Vec::new();
-    let mut dropped = Vec::new();
+    let mut checked = Checked {
+        complete: 0,
+        record_bytes: 0,
+        width: 2,
+        clock_filled: false,
+        metres_per_unit: hd.metres_per_unit().unwrap_or(1.0),
+        dropped: Vec::new(),
+    };
     let mut record_bytes = None;
     let mut at = 0;
-    while at < bytes.len() {
-        let index = trace_headers.len();
-        let rest = bytes.get(at..).unwrap_or_default();
-        let Some(header) = Dt1TraceHeader::parse(rest) else {
+    while at < len {
+        let index = checked.complete;
+        let rest = len - at;
+        let Some(header) = header_at(at) else {
             let want = record_bytes.unwrap_or(DT1_TRACE_HEADER_BYTES);
-            dropped.push(truncated(dt1_path, index, rest.len(), want));
+            checked.dropped.push(truncated(dt1_path, index, rest, want));
             break;
         };
         let width = match header.bytes_per_sample {
@@ -363,7 +439,10 @@ pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) ->
         }
         let this_record = points.saturating_mul(width).saturating_add(DT1_TRACE_HEADER_BYTES);
         match record_bytes {
-            None => record_bytes = Some(this_record),
+            None => {
+                record_bytes = Some(this_record);
+                checked.width = width;
+            }
             Some(first) if first != this_record => {
                 let found = format!("header says {width} bytes/sample");
                 let first = format!("trace 0 says {}", (first - DT1_TRACE_HEADER_BYTES) / points);
@@ -371,53 +450,122 @@ pub fn parse_dt1(hd: HdHeader, hd_path: &Path, bytes: &[u8], dt1_path: &Path) ->
             }
             Some(_) => {}
         }
-        let Some(data) = rest.get(DT1_TRACE_HEADER_BYTES..this_record) else {
-            dropped.push(truncated(dt1_path, index, rest.len(), this_record));
+        if rest < this_record {
+            checked.dropped.push(truncated(dt1_path, index, rest, this_record));
             break;
-        };
-        samples.push(signed_le_samples(data, width));
-        trace_headers.push(header);
+        }
+        checked.clock_filled |= header.time_of_day_s != 0.0;
+        checked.complete += 1;
         at += this_record;
     }
-
-    let complete = trace_headers.len();
-    let cut_short = !dropped.is_empty() && complete < hd.number_of_traces;
+    checked.record_bytes = record_bytes.unwrap_or(DT1_TRACE_HEADER_BYTES);
+    let complete = checked.complete;
+    let cut_short = !checked.dropped.is_empty() && complete < hd.number_of_traces;
     if complete != hd.number_of_traces && !cut_short {
         let found = format!("file holds {complete} complete traces");
         let hd_says = format!("HD says {}", hd.number_of_traces);
         return Err(disagree(Record::File, "traces", found, hd_says));
     }
+    Ok(checked)
+}
 
-    let clock_filled = trace_headers.iter().any(|h| h.time_of_day_s != 0.0);
-    let traces = trace_headers
-        .iter()
-        .zip(samples)
-        .map(|(h, samples)| RawTrace {
-            channel: 0,
-            stamp_ns: (clock_filled && h.time_of_day_s.is_finite())
-                .then(|| (f64::from(h.time_of_day_s) * 1e9).round() as i64),
-            distance_m: f64::from(h.position) * metres_per_unit,
-            samples,
-        })
-        .collect();
-    let interval_ns = hd.sample_interval_ns();
-    let radargram = Radargram {
-        source: dt1_path.to_owned(),
-        format: Format::Dt1,
-        channels: 1,
-        samples_per_trace: points,
-        sample_interval_ns: interval_ns,
-        time_zero_ns: hd.timezero_at_point.map_or(0.0, |point| -(point - 1.0) * interval_ns),
-        center_frequency_hz: hd.nominal_frequency_mhz.map_or(f64::NAN, |mhz| mhz * 1e6),
-        traces,
-        dropped,
-    };
-    Ok(Dt1Line {
-        hd_path: hd_path.to_owned(),
-        hd,
-        trace_headers,
-        radargram,
-    })
+/// A DT1 line read trace by trace from disk: memory does not grow with its length. Opening
+/// reads every trace header once (the checks of [`read_dt1`], and whether the clock is
+/// filled); the stream then yields the traces [`read_dt1`] would return, in the same order.
+#[derive(Debug)]
+pub struct Dt1Stream {
+    checked: Checked,
+    reader: std::io::BufReader<std::fs::File>,
+    buffer: Vec<u8>,
+    next: usize,
+    path: PathBuf,
+    /// Records skipped (a cut-short last trace; a read error).
+    pub dropped: Vec<Dropped>,
+}
+
+impl Dt1Stream {
+    /// Opens `dt1` and the `.HD` beside it and checks every trace header; returns the HD,
+    /// the line's description (its `traces` empty: they come from the stream) and the stream.
+    ///
+    /// # Errors
+    /// As [`read_dt1`].
+    pub fn open(dt1: &Path) -> Result<(HdHeader, Radargram, Self)> {
+        use std::io::{Read, Seek, SeekFrom};
+        let hd_path = find_hd(dt1)?;
+        let io = |path: &Path| {
+            let path = path.to_owned();
+            move |source| Error::Io { path, source }
+        };
+        let hd_bytes = std::fs::read(&hd_path).map_err(io(&hd_path))?;
+        let hd = parse_hd(&String::from_utf8_lossy(&hd_bytes), &hd_path)?;
+        let file = std::fs::File::open(dt1).map_err(io(dt1))?;
+        let len = usize::try_from(file.metadata().map_err(io(dt1))?.len()).unwrap_or(usize::MAX);
+        let mut reader = std::io::BufReader::with_capacity(1 << 16, file);
+        let mut head = [0_u8; DT1_TRACE_HEADER_BYTES];
+        let mut failed = None;
+        let checked = check_records(&hd, dt1, len, |at| {
+            if len - at < DT1_TRACE_HEADER_BYTES || failed.is_some() {
+                return None;
+            }
+            let read = reader
+                .seek(SeekFrom::Start(at as u64))
+                .and_then(|_| reader.read_exact(&mut head));
+            match read {
+                Ok(()) => Dt1TraceHeader::parse(&head),
+                Err(e) => {
+                    failed = Some(e);
+                    None
+                }
+            }
+        })?;
+        if let Some(e) = failed {
+            return Err(io(dt1)(e));
+        }
+        reader.seek(SeekFrom::Start(0)).map_err(io(dt1))?;
+        let radargram = checked.radargram(&hd, dt1);
+        Ok((
+            hd,
+            radargram,
+            Self {
+                dropped: checked.dropped.clone(),
+                buffer: vec![0; checked.record_bytes],
+                checked,
+                reader,
+                next: 0,
+                path: dt1.to_owned(),
+            },
+        ))
+    }
+
+    /// Complete traces in the line.
+    pub fn traces(&self) -> usize {
+        self.checked.complete
+    }
+}
+
+impl Iterator for Dt1Stream {
+    type Item = RawTrace;
+
+    fn next(&mut self) -> Option<RawTrace> {
+        use std::io::Read;
+        if self.next >= self.checked.complete {
+            return None;
+        }
+        if let Err(e) = self.reader.read_exact(&mut self.buffer) {
+            tracing::warn!(
+                "{}: read error at trace {}: {e}; the traces before it are kept",
+                self.path.display(),
+                self.next
+            );
+            self.dropped
+                .push(truncated(&self.path, self.next, 0, self.checked.record_bytes));
+            self.next = self.checked.complete;
+            return None;
+        }
+        self.next += 1;
+        let header = Dt1TraceHeader::parse(&self.buffer)?;
+        Some(self.checked.trace(&header, &self.buffer[DT1_TRACE_HEADER_BYTES..]))
+    }
 }
 
 fn truncated(file: &Path, index: usize, got: usize, want: usize) -> Dropped {

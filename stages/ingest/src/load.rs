@@ -336,26 +336,44 @@ impl TraceMessages {
     }
 }
 
-/// A DZT file streamed from disk as the `ingest` stage's messages (what [`load`] gives for
-/// it, in the same order), scan by scan: memory does not grow with the file. Wheel messages
-/// are scaled as they pass; skipped and corrected records are logged as warnings naming the
-/// file.
-pub struct DztMessages {
-    traces: crate::dzt::DztStream,
+/// A radar file read trace by trace ([`crate::dzt::DztStream`], [`crate::dt1::Dt1Stream`]).
+pub trait TraceStream: Iterator<Item = RawTrace> + Send {
+    /// Records skipped so far (taken: each is returned once).
+    fn take_dropped(&mut self) -> Vec<crate::error::Dropped>;
+}
+
+impl TraceStream for crate::dzt::DztStream {
+    fn take_dropped(&mut self) -> Vec<crate::error::Dropped> {
+        std::mem::take(&mut self.dropped)
+    }
+}
+
+impl TraceStream for crate::dt1::Dt1Stream {
+    fn take_dropped(&mut self) -> Vec<crate::error::Dropped> {
+        std::mem::take(&mut self.dropped)
+    }
+}
+
+/// A DZT or DT1 file streamed from disk as the `ingest` stage's messages (what [`load`] gives
+/// for it, in the same order), trace by trace: memory does not grow with the file. Wheel
+/// messages are scaled as they pass; skipped and corrected records are logged as warnings
+/// naming the file.
+pub struct RadarMessages {
+    traces: Box<dyn TraceStream>,
     convert: TraceMessages,
     index: usize,
     queue: std::collections::VecDeque<(Port, i64, Vec<u8>)>,
     wheel_scale: f64,
     warned: usize,
-    /// Messages in all (traces, and wheel messages in survey-wheel mode).
-    pub total: usize,
+    /// Messages in all (traces, and wheel messages where the file gives distances), when known.
+    pub total: Option<usize>,
     /// What was read, for logs.
     pub summary: String,
 }
 
-impl std::fmt::Debug for DztMessages {
+impl std::fmt::Debug for RadarMessages {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("DztMessages")
+        f.debug_struct("RadarMessages")
             .field("summary", &self.summary)
             .finish_non_exhaustive()
     }
@@ -364,26 +382,47 @@ impl std::fmt::Debug for DztMessages {
 /// Warnings a streamed source logs one by one before it only counts them.
 const WARN_AT_MOST: usize = 20;
 
-impl DztMessages {
-    /// Opens `path` and checks its header.
+impl RadarMessages {
+    /// Opens `path` in `format` (DZT or DT1) and checks its header (a DT1: every trace
+    /// header).
     ///
     /// # Errors
-    /// As [`crate::dzt::read_dzt`] for the header.
-    pub fn open(path: &Path, options: &LoadOptions) -> Result<Self> {
-        let (h, r, traces) = crate::dzt::DztStream::open(path)?;
-        let scans = traces.scans();
-        let wheel = usize::from(h.scans_per_metre.is_finite() && h.scans_per_metre > 0.0);
+    /// As [`crate::dzt::read_dzt`] and [`crate::dt1::read_dt1`]; [`Error::UnknownFormat`]
+    /// for another format.
+    pub fn open(path: &Path, format: SourceFormat, options: &LoadOptions) -> Result<Self> {
+        let (r, traces, total, summary): (Radargram, Box<dyn TraceStream>, usize, String) = match format {
+            SourceFormat::Dzt => {
+                let (h, r, traces) = crate::dzt::DztStream::open(path)?;
+                let scans = traces.scans();
+                let wheel = usize::from(h.scans_per_metre.is_finite() && h.scans_per_metre > 0.0);
+                let summary = format!(
+                    "DZT (streamed): {} traces x {} samples, {} channel(s), {} ns range, antenna {:?}",
+                    scans * usize::from(r.channels),
+                    r.samples_per_trace,
+                    r.channels,
+                    h.range_ns,
+                    h.antenna_name
+                );
+                let total = scans * (usize::from(r.channels) + wheel);
+                (r, Box::new(traces), total, summary)
+            }
+            SourceFormat::Dt1 => {
+                let (_, r, traces) = crate::dt1::Dt1Stream::open(path)?;
+                let n = traces.traces();
+                let summary = format!(
+                    "DT1 (streamed): {n} traces x {} samples, {:.1} ns window",
+                    r.samples_per_trace,
+                    r.sample_interval_ns * r.samples_per_trace as f64
+                );
+                // a wheel message per trace: DT1 traces carry their position
+                (r, Box::new(traces), 2 * n, summary)
+            }
+            _ => return Err(Error::UnknownFormat { path: path.into() }),
+        };
         Ok(Self {
             convert: TraceMessages::new(&r, options),
-            summary: format!(
-                "DZT (streamed): {} traces x {} samples, {} channel(s), {} ns range, antenna {:?}",
-                scans * usize::from(r.channels),
-                r.samples_per_trace,
-                r.channels,
-                h.range_ns,
-                h.antenna_name
-            ),
-            total: scans * (usize::from(r.channels) + wheel),
+            summary,
+            total: Some(total),
             traces,
             index: 0,
             queue: std::collections::VecDeque::new(),
@@ -400,13 +439,13 @@ impl DztMessages {
     }
 }
 
-impl Iterator for DztMessages {
+impl Iterator for RadarMessages {
     type Item = (Port, i64, Vec<u8>);
 
     fn next(&mut self) -> Option<Self::Item> {
         while self.queue.is_empty() {
             let Some(trace) = self.traces.next() else {
-                for d in std::mem::take(&mut self.traces.dropped) {
+                for d in self.traces.take_dropped() {
                     self.warn(&d.to_string());
                 }
                 if self.warned > WARN_AT_MOST {

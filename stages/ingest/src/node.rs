@@ -10,7 +10,7 @@ use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::format::SourceFormat;
-use crate::load::{DztMessages, LoadOptions, McapStream, Port, TopicMap, load};
+use crate::load::{LoadOptions, McapStream, Port, RadarMessages, TopicMap, load};
 
 /// Parameters of the `ingest` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -115,18 +115,20 @@ impl Stage for IngestStage {
                 player: Player::streaming(Box::new(source), total, params.pace, params.speed),
             });
         }
-        if format == SourceFormat::Dzt {
-            // streamed scan by scan: memory does not grow with the file
-            let stream = DztMessages::open(path, &options).map_err(StageError::failed)?;
+        if matches!(format, SourceFormat::Dzt | SourceFormat::Dt1) {
+            // streamed trace by trace: memory does not grow with the file
+            let stream = RadarMessages::open(path, format, &options).map_err(StageError::failed)?;
             tracing::info!("ingest: {}: {}", params.source, stream.summary);
-            let total = (params.start_s.is_none() && params.end_s.is_none()).then_some(stream.total);
+            let total = stream
+                .total
+                .filter(|_| params.start_s.is_none() && params.end_s.is_none());
             let source = window_from_first(stream, params.start_s, params.end_s)
                 .map(|(port, stamp, data)| (port as usize, stamp, data));
             return Ok(Self {
                 player: Player::streaming(Box::new(source), total, params.pace, params.speed),
             });
         }
-        // DT1 and CMU-GPR are read whole (their readers take the files at once).
+        // CMU-GPR folders are read whole (their readers take the files at once).
         let loaded = load(path, format, &options).map_err(StageError::failed)?;
         tracing::info!("ingest: {}: {}", params.source, loaded.summary);
         for d in loaded.dropped.iter().take(20) {

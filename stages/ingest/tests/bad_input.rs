@@ -646,7 +646,7 @@ proptest! {
 #[test]
 fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
     use gprflow_ingest::SourceFormat;
-    use gprflow_ingest::load::{DztMessages, LoadOptions, load};
+    use gprflow_ingest::load::{LoadOptions, RadarMessages, load};
     let dir = tempfile::tempdir().expect("tempdir");
     // two channels in survey-wheel mode (a wheel message per scan), 16 bits, 50 scans
     let spec = DztSpec {
@@ -674,7 +674,9 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
         let path = dir.path().join(name);
         std::fs::write(&path, &bytes).expect("write");
         let whole = load(&path, SourceFormat::Dzt, &options).expect("loads");
-        let streamed: Vec<_> = DztMessages::open(&path, &options).expect("opens").collect();
+        let streamed: Vec<_> = RadarMessages::open(&path, SourceFormat::Dzt, &options)
+            .expect("opens")
+            .collect();
         assert!(!whole.messages.is_empty(), "{name}");
         assert!(
             whole.messages == streamed,
@@ -687,5 +689,42 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
             "{name}: {:?}",
             whole.dropped
         );
+    }
+}
+
+#[test]
+fn a_streamed_dt1_gives_what_the_whole_file_gives_cut_off_or_not() {
+    use gprflow_ingest::SourceFormat;
+    use gprflow_ingest::load::{LoadOptions, RadarMessages, load};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let real = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/real-gpr");
+    let options = LoadOptions::default();
+    for stem in ["SnS_ComOffs_XLINE00", "SnS_WARR_XLINE00"] {
+        let bytes = std::fs::read(real.join(format!("{stem}.DT1"))).expect("the real DT1");
+        let hd = std::fs::read(real.join(format!("{stem}.HD"))).expect("its HD");
+        for (name, cut) in [
+            (stem.to_owned(), bytes.len()),
+            (format!("{stem}-cut"), bytes.len() * 2 / 3 + 7),
+        ] {
+            std::fs::write(dir.path().join(format!("{name}.DT1")), &bytes[..cut]).expect("write");
+            std::fs::write(dir.path().join(format!("{name}.HD")), &hd).expect("write");
+            let path = dir.path().join(format!("{name}.DT1"));
+            let whole = load(&path, SourceFormat::Dt1, &options).expect("loads");
+            let streamed: Vec<_> = RadarMessages::open(&path, SourceFormat::Dt1, &options)
+                .expect("opens")
+                .collect();
+            assert!(!whole.messages.is_empty(), "{name}");
+            assert!(
+                whole.messages == streamed,
+                "{name}: the stream gives the same messages in the same order"
+            );
+            let was_cut = cut < bytes.len();
+            assert_eq!(
+                whole.dropped.iter().any(|d| d.contains("truncated")),
+                was_cut,
+                "{name}: {:?}",
+                whole.dropped
+            );
+        }
     }
 }
