@@ -480,6 +480,47 @@ impl DztStream {
         ))
     }
 
+    /// Moves to the first scan stamped at or after `start_ns` (stamps count from 0 at scan 0:
+    /// `scan / rhf_sps` in time mode, `scan x trace_interval_s` in survey-wheel mode) without
+    /// reading the scans before it. Returns the scan number and, in survey-wheel mode, the
+    /// distance of the scan before it (for the wheel speed of the first one).
+    ///
+    /// # Errors
+    /// When the file cannot seek.
+    pub fn seek_stamp(&mut self, start_ns: i64, trace_interval_s: f64) -> Result<(usize, Option<f64>)> {
+        use std::io::Seek;
+        let period_ns = match self.layout.sps {
+            Some(sps) => 1e9 / sps,
+            None => trace_interval_s * 1e9,
+        };
+        let scan = if start_ns <= 0 || period_ns <= 0.0 {
+            0
+        } else {
+            // the smallest scan whose rounded stamp is at or after the start
+            let mut k = (start_ns as f64 / period_ns).floor().max(0.0) as usize;
+            while ((k as f64 * period_ns).round() as i64) < start_ns {
+                k += 1;
+            }
+            k
+        };
+        let at = self.layout.offset as u64 + (scan as u64) * self.layout.scan_bytes as u64;
+        self.reader
+            .seek(std::io::SeekFrom::Start(at))
+            .map_err(|source| Error::Io {
+                path: self.path.clone(),
+                source,
+            })?;
+        self.scan = scan;
+        self.pending.clear();
+        let before = self.layout.spm.filter(|_| scan > 0).map(|spm| (scan - 1) as f64 / spm);
+        Ok((scan, before))
+    }
+
+    /// Channels per scan.
+    pub fn channels(&self) -> usize {
+        usize::from(self.layout.header.channels)
+    }
+
     /// Scans in the file (complete ones), from its length.
     pub fn scans(&self) -> usize {
         let len = self.reader.get_ref().metadata().map_or(0, |m| m.len());

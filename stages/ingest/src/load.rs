@@ -431,6 +431,23 @@ impl RadarMessages {
         })
     }
 
+    /// DZT only: starts at the first scan stamped `start_s` or later (stamps count from 0),
+    /// without reading the scans before it; the messages are those [`load`] gives from there.
+    ///
+    /// # Errors
+    /// A source that is not a DZT file; a file that cannot seek.
+    pub fn open_dzt_at(path: &Path, options: &LoadOptions, start_s: f64) -> Result<Self> {
+        let mut stream = crate::dzt::DztStream::open(path)?.2;
+        let (scan, before) = stream.seek_stamp((start_s * 1e9).round() as i64, options.trace_interval_s)?;
+        let channels = stream.channels().max(1);
+        let mut this = Self::open(path, SourceFormat::Dzt, options)?;
+        this.traces = Box::new(stream);
+        this.index = scan * channels;
+        this.convert.last_distance = before;
+        this.total = None;
+        Ok(this)
+    }
+
     fn warn(&mut self, what: &str) {
         if self.warned < WARN_AT_MOST {
             tracing::warn!("ingest: skipped {what}");

@@ -117,12 +117,19 @@ impl Stage for IngestStage {
         }
         if matches!(format, SourceFormat::Dzt | SourceFormat::Dt1) {
             // streamed trace by trace: memory does not grow with the file
-            let stream = RadarMessages::open(path, format, &options).map_err(StageError::failed)?;
+            let stream = match (format, params.start_s) {
+                // a DZT's stamps count from 0 at its first scan: the start is found without
+                // reading what comes before
+                (SourceFormat::Dzt, Some(start)) => RadarMessages::open_dzt_at(path, &options, start),
+                _ => RadarMessages::open(path, format, &options),
+            }
+            .map_err(StageError::failed)?;
             tracing::info!("ingest: {}: {}", params.source, stream.summary);
             let total = stream
                 .total
                 .filter(|_| params.start_s.is_none() && params.end_s.is_none());
-            let source = window_from_first(stream, params.start_s, params.end_s)
+            let first = (format == SourceFormat::Dzt).then_some(0);
+            let source = window_from_first(stream, first, params.start_s, params.end_s)
                 .map(|(port, stamp, data)| (port as usize, stamp, data));
             return Ok(Self {
                 player: Player::streaming(Box::new(source), total, params.pace, params.speed),
@@ -156,14 +163,14 @@ impl Stage for IngestStage {
     }
 }
 
-/// The messages of `source` (in stamp order) from `start_s` to `end_s` seconds after its first
-/// message.
+/// The messages of `source` (in stamp order) from `start_s` to `end_s` seconds after `first`
+/// (ns; `None`: its first message's stamp).
 fn window_from_first(
     source: impl Iterator<Item = (Port, i64, Vec<u8>)>,
+    mut first: Option<i64>,
     start_s: Option<f64>,
     end_s: Option<f64>,
 ) -> impl Iterator<Item = (Port, i64, Vec<u8>)> {
-    let mut first = None;
     source
         .map(move |m| {
             let first = *first.get_or_insert(m.1);

@@ -682,6 +682,20 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
             whole.messages == streamed,
             "{name}: the stream gives the same messages in the same order"
         );
+        // a start found by seeking: the stream begins there, with what the whole file has from there
+        for start_s in [0.0, 0.013, 0.2, 0.5] {
+            let start_ns = (start_s * 1e9_f64).round() as i64;
+            let from: Vec<_> = whole.messages.iter().filter(|m| m.1 >= start_ns).cloned().collect();
+            let sought: Vec<_> = RadarMessages::open_dzt_at(&path, &options, start_s)
+                .expect("seeks")
+                .collect();
+            assert!(
+                sought == from,
+                "{name}: from {start_s} s, {} vs {} messages",
+                sought.len(),
+                from.len()
+            );
+        }
         let cut = name.contains("cut");
         assert_eq!(
             whole.dropped.iter().any(|d| d.contains("truncated")),
