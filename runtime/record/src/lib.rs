@@ -14,7 +14,8 @@ mod stages;
 pub use read::{Extras, Message, Messages, RecordedMessage, Recording, Window};
 
 pub use stages::{
-    PROMISE_EVERY_NS, Pace, Player, RecordParams, RecordStage, ReplayParams, ReplayStage, check_window, seconds_window,
+    LOOP_GAP_NS, PROMISE_EVERY_NS, Pace, Player, RecordParams, RecordStage, ReplayParams, ReplayStage, check_window,
+    seconds_window,
 };
 
 use std::collections::BTreeMap;
