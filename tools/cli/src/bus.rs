@@ -158,50 +158,76 @@ pub fn replay(args: &ReplayArgs) -> Result<ExitCode> {
 
     let stop = bind_signals().context("cannot install signal handlers")?;
     let transport = IoxTransport::new(&format!("gprflow_replay_{}", std::process::id()), &prefix, stop.clone())?;
-    // what each topic is called on the bus, and how many readers to wait for
+    // what each topic is called on the bus, and how many readers to wait for: a launch with
+    // --external declares all its outside topics at once, before anything starts, so once one
+    // of ours is declared, those not declared are read by nobody and are left out
+    let on_bus = |topic: &String| remaps.get(topic).unwrap_or(topic).clone();
     let started = Instant::now();
+    let declared: Vec<Option<usize>> = if args.readers.is_some() {
+        Vec::new()
+    } else {
+        loop {
+            let found: Vec<Option<usize>> = chosen
+                .iter()
+                .map(|(topic, _)| transport.declared_readers(&on_bus(topic)))
+                .collect();
+            if found.iter().any(Option::is_some) {
+                break found;
+            }
+            if started.elapsed() > wait {
+                let names: Vec<String> = chosen.iter().map(|(t, _)| format!("`{}`", on_bus(t))).collect();
+                bail!(
+                    "no run on {} reads {} (waited {:.0} s): launch the graph with `--bus NAME --external NODE`, \
+                     or give --readers N",
+                    args.bus,
+                    names.join(", "),
+                    wait.as_secs_f64()
+                );
+            }
+            if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                return Ok(ExitCode::from(130));
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    };
+    let on_the_bus = transport.topics()?;
     let mut outputs = Vec::new();
-    for (topic, msg_type) in &chosen {
-        let on_bus = remaps.get(topic).unwrap_or(topic);
-        let readers = match args.readers {
-            Some(n) => n,
-            None => loop {
-                if let Some(n) = transport.declared_readers(on_bus) {
-                    break n;
-                }
-                if started.elapsed() > wait {
-                    bail!(
-                        "no run on {} reads `{on_bus}` (waited {:.0} s): launch the graph with `--bus NAME --external NODE`, \
-                         leave the topic out with --topics, or give --readers N",
-                        args.bus,
-                        wait.as_secs_f64()
-                    );
-                }
-                if stop.load(std::sync::atomic::Ordering::Relaxed) {
-                    return Ok(ExitCode::from(130));
-                }
-                std::thread::sleep(Duration::from_millis(20));
-            },
+    let mut unread = Vec::new();
+    for (i, (topic, msg_type)) in chosen.iter().enumerate() {
+        let name = on_bus(topic);
+        let readers = match (args.readers, declared.get(i).copied().flatten()) {
+            (Some(n), _) | (None, Some(n)) => n,
+            (None, None) => {
+                unread.push(name);
+                continue;
+            }
         };
         // the topic's settings are the run's when it declared them
-        let declared: Option<BusTopic> = transport.topics()?.into_iter().find(|t| &t.name == on_bus);
-        if let Some(ty) = declared.as_ref().and_then(|d| d.msg_type.as_ref())
+        let bus_topic: Option<&BusTopic> = on_the_bus.iter().find(|t| t.name == name);
+        if let Some(ty) = bus_topic.and_then(|d| d.msg_type.as_ref())
             && ty != msg_type
         {
             bail!(
-                "{file}: topic `{topic}` holds {msg_type}, but {} reads `{on_bus}` as {ty}",
+                "{file}: topic `{topic}` holds {msg_type}, but {} reads `{name}` as {ty}",
                 args.bus
             );
         }
         outputs.push(OutputBinding {
             name: topic.clone(),
-            topic: on_bus.clone(),
+            topic: name,
             msg_type: msg_type.clone(),
             subscribers: readers,
             required_subscribers: readers,
-            buffer: declared.as_ref().map_or(16, |d| d.buffer),
-            latest_only: declared.as_ref().is_some_and(|d| d.latest_only),
+            buffer: bus_topic.map_or(16, |d| d.buffer),
+            latest_only: bus_topic.is_some_and(|d| d.latest_only),
         });
+    }
+    if !unread.is_empty() {
+        eprintln!(
+            "gprflow: not replayed (no reader on {}): {}",
+            args.bus,
+            unread.join(", ")
+        );
     }
     let (pace, speed) = match args.rate {
         Rate::Max => ("max", 1.0),
@@ -216,7 +242,7 @@ pub fn replay(args: &ReplayArgs) -> Result<ExitCode> {
             "path": args.file.display().to_string(),
             "pace": pace,
             "speed": speed,
-            "topics": chosen.iter().map(|(t, _)| t.clone()).collect::<Vec<_>>(),
+            "topics": outputs.iter().map(|o| o.name.clone()).collect::<Vec<_>>(),
             "start_s": args.start_s,
             "end_s": args.end_s,
             "loops": args.loops,

@@ -139,8 +139,9 @@ enum Command {
     },
     /// Publish a recording's topics on a bus, in stamp order, for a graph launched there.
     ///
-    /// It waits until the readers the graph declared for each topic have attached, then sends
-    /// at the recorded pace (--rate) or as fast as they take it (--rate max); --loop plays it
+    /// It waits until the readers the graph declared for each topic have attached (topics the
+    /// graph does not read are left out), then sends at the recorded pace (--rate) or as fast
+    /// as they take it (--rate max); --loop plays it
     /// until Ctrl-C, which ends every topic cleanly. Examples (`&`: the graph runs beside it,
     /// as from a second terminal; --readers 0: send at once, to whoever listens):
     ///   gprflow launch graphs/toy.yaml --bus live --external gen -o out/toy-live.mcap & gprflow replay recordings/toy.mcap --bus live --topics 'gen/*' --rate max; wait
