@@ -184,6 +184,21 @@ impl IoxTransport {
             .payload_alignment(alignment))
     }
 
+    /// The builder of `topic`'s service with the settings every side of it uses.
+    fn pubsub_settings(
+        &self,
+        topic: &TopicConfig,
+    ) -> Result<iceoryx2::service::builder::publish_subscribe::Builder<[u8], FrameHeader, ipc::Service>> {
+        Ok(self
+            .pubsub_builder(&topic.name)?
+            .subscriber_max_buffer_size(topic.buffer)
+            .subscriber_max_borrowed_samples(MAX_BORROWED)
+            .history_size(0)
+            .max_publishers(MAX_PUBLISHERS)
+            .max_subscribers(MAX_SUBSCRIBERS)
+            .enable_safe_overflow(topic.latest_only))
+    }
+
     fn pubsub(&self, topic: &TopicConfig) -> Result<PubSubFactory<ipc::Service, [u8], FrameHeader>> {
         let mut verifier = AttributeVerifier::new();
         if let Some(t) = &topic.msg_type {
@@ -191,13 +206,7 @@ impl IoxTransport {
                 .require(&attribute_key(TYPE_KEY)?, &attribute_value(&topic.name, t)?)
                 .map_err(|e| err(&topic.name, format!("{e:?}")))?;
         }
-        self.pubsub_builder(&topic.name)?
-            .subscriber_max_buffer_size(topic.buffer)
-            .subscriber_max_borrowed_samples(MAX_BORROWED)
-            .history_size(0)
-            .max_publishers(MAX_PUBLISHERS)
-            .max_subscribers(MAX_SUBSCRIBERS)
-            .enable_safe_overflow(topic.latest_only)
+        self.pubsub_settings(topic)?
             .open_or_create_with_attributes(&verifier)
             .map_err(|e| err(&topic.name, format!("cannot open publish-subscribe service: {e:?}")))
     }
@@ -222,13 +231,7 @@ impl IoxTransport {
                 .map_err(|e| err(&topic.name, format!("{e:?}")))?;
         }
         let factory = self
-            .pubsub_builder(&topic.name)?
-            .subscriber_max_buffer_size(topic.buffer)
-            .subscriber_max_borrowed_samples(MAX_BORROWED)
-            .history_size(0)
-            .max_publishers(MAX_PUBLISHERS)
-            .max_subscribers(MAX_SUBSCRIBERS)
-            .enable_safe_overflow(topic.latest_only)
+            .pubsub_settings(topic)?
             .create_with_attributes(&attributes)
             .map_err(|e| err(&topic.name, format!("cannot declare the topic: {e:?}")))?;
         Ok(DeclaredTopic { _factory: factory })

@@ -189,15 +189,23 @@ pub fn read_dt1(dt1: &Path) -> Result<(HdHeader, Radargram)> {
 
 /// Like [`read_dt1`], keeping every trace header.
 pub fn read_dt1_line(dt1: &Path) -> Result<Dt1Line> {
-    let hd_path = find_hd(dt1)?;
-    let io = |path: &Path| {
-        let path = path.to_owned();
-        move |source| Error::Io { path, source }
-    };
-    let hd_bytes = std::fs::read(&hd_path).map_err(io(&hd_path))?;
-    let hd = parse_hd(&String::from_utf8_lossy(&hd_bytes), &hd_path)?;
-    let bytes = std::fs::read(dt1).map_err(io(dt1))?;
+    let (hd_path, hd) = read_hd_beside(dt1)?;
+    let bytes = std::fs::read(dt1).map_err(io_error(dt1))?;
     parse_dt1(hd, &hd_path, &bytes, dt1)
+}
+
+/// An I/O error on `path`.
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> Error {
+    let path = path.to_owned();
+    move |source| Error::Io { path, source }
+}
+
+/// The `.HD` beside `dt1`, read: where it is and what it says.
+fn read_hd_beside(dt1: &Path) -> Result<(PathBuf, HdHeader)> {
+    let hd_path = find_hd(dt1)?;
+    let hd_bytes = std::fs::read(&hd_path).map_err(io_error(&hd_path))?;
+    let hd = parse_hd(&String::from_utf8_lossy(&hd_bytes), &hd_path)?;
+    Ok((hd_path, hd))
 }
 
 /// The `.HD` next to `dt1`: same stem, extension `hd` in any case.
@@ -491,13 +499,8 @@ impl Dt1Stream {
     /// As [`read_dt1`].
     pub fn open(dt1: &Path) -> Result<(HdHeader, Radargram, Self)> {
         use std::io::{Read, Seek, SeekFrom};
-        let hd_path = find_hd(dt1)?;
-        let io = |path: &Path| {
-            let path = path.to_owned();
-            move |source| Error::Io { path, source }
-        };
-        let hd_bytes = std::fs::read(&hd_path).map_err(io(&hd_path))?;
-        let hd = parse_hd(&String::from_utf8_lossy(&hd_bytes), &hd_path)?;
+        let (_, hd) = read_hd_beside(dt1)?;
+        let io = io_error;
         let file = std::fs::File::open(dt1).map_err(io(dt1))?;
         let len = usize::try_from(file.metadata().map_err(io(dt1))?.len()).unwrap_or(usize::MAX);
         let mut reader = std::io::BufReader::with_capacity(1 << 16, file);

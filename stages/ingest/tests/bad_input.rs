@@ -646,7 +646,7 @@ proptest! {
 #[test]
 fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
     use gprflow_ingest::SourceFormat;
-    use gprflow_ingest::load::{LoadOptions, RadarMessages, load};
+    use gprflow_ingest::load::{LoadOptions, RadarMessages};
     let dir = tempfile::tempdir().expect("tempdir");
     // two channels in survey-wheel mode (a wheel message per scan), 16 bits, 50 scans
     let spec = DztSpec {
@@ -673,15 +673,7 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
     ] {
         let path = dir.path().join(name);
         std::fs::write(&path, &bytes).expect("write");
-        let whole = load(&path, SourceFormat::Dzt, &options).expect("loads");
-        let streamed: Vec<_> = RadarMessages::open(&path, SourceFormat::Dzt, &options)
-            .expect("opens")
-            .collect();
-        assert!(!whole.messages.is_empty(), "{name}");
-        assert!(
-            whole.messages == streamed,
-            "{name}: the stream gives the same messages in the same order"
-        );
+        let whole = streams_like_the_whole_file(&path, SourceFormat::Dzt, &options, name.contains("cut"));
         // a start found by seeking: the stream begins there, with what the whole file has from there
         for start_s in [0.0, 0.013, 0.2, 0.5] {
             let start_ns = (start_s * 1e9_f64).round() as i64;
@@ -696,20 +688,39 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
                 from.len()
             );
         }
-        let cut = name.contains("cut");
-        assert_eq!(
-            whole.dropped.iter().any(|d| d.contains("truncated")),
-            cut,
-            "{name}: {:?}",
-            whole.dropped
-        );
     }
+}
+
+/// Checks that `path` streamed gives the messages the whole-file reader gives, in the same
+/// order, and that a cut file reports its cut record; returns the whole-file reading.
+fn streams_like_the_whole_file(
+    path: &Path,
+    format: gprflow_ingest::SourceFormat,
+    options: &gprflow_ingest::load::LoadOptions,
+    cut: bool,
+) -> gprflow_ingest::load::Loaded {
+    use gprflow_ingest::load::{RadarMessages, load};
+    let name = path.display();
+    let whole = load(path, format, options).expect("loads");
+    let streamed: Vec<_> = RadarMessages::open(path, format, options).expect("opens").collect();
+    assert!(!whole.messages.is_empty(), "{name}");
+    assert!(
+        whole.messages == streamed,
+        "{name}: the stream gives the same messages in the same order"
+    );
+    assert_eq!(
+        whole.dropped.iter().any(|d| d.contains("truncated")),
+        cut,
+        "{name}: {:?}",
+        whole.dropped
+    );
+    whole
 }
 
 #[test]
 fn a_streamed_dt1_gives_what_the_whole_file_gives_cut_off_or_not() {
     use gprflow_ingest::SourceFormat;
-    use gprflow_ingest::load::{LoadOptions, RadarMessages, load};
+    use gprflow_ingest::load::LoadOptions;
     let dir = tempfile::tempdir().expect("tempdir");
     let real = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/real-gpr");
     let options = LoadOptions::default();
@@ -723,22 +734,7 @@ fn a_streamed_dt1_gives_what_the_whole_file_gives_cut_off_or_not() {
             std::fs::write(dir.path().join(format!("{name}.DT1")), &bytes[..cut]).expect("write");
             std::fs::write(dir.path().join(format!("{name}.HD")), &hd).expect("write");
             let path = dir.path().join(format!("{name}.DT1"));
-            let whole = load(&path, SourceFormat::Dt1, &options).expect("loads");
-            let streamed: Vec<_> = RadarMessages::open(&path, SourceFormat::Dt1, &options)
-                .expect("opens")
-                .collect();
-            assert!(!whole.messages.is_empty(), "{name}");
-            assert!(
-                whole.messages == streamed,
-                "{name}: the stream gives the same messages in the same order"
-            );
-            let was_cut = cut < bytes.len();
-            assert_eq!(
-                whole.dropped.iter().any(|d| d.contains("truncated")),
-                was_cut,
-                "{name}: {:?}",
-                whole.dropped
-            );
+            streams_like_the_whole_file(&path, SourceFormat::Dt1, &options, cut < bytes.len());
         }
     }
 }
