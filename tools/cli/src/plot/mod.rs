@@ -8,9 +8,12 @@ mod trajectory;
 pub use radargram::{Colormap, Feature, Radargram, radargram, usable_distances};
 pub use trajectory::{Lines, RunTrack, TrajectoryFigure, trajectory_figure};
 
+use std::ops::Range;
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow};
+use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 /// Where Debian, Fedora and Arch put DejaVu Sans (Debian package `fonts-dejavu-core`).
@@ -87,6 +90,65 @@ pub(crate) const COLORS: [RGBColor; 5] = [
     RGBColor(148, 103, 189),
 ];
 
+/// The error of drawing into `path`'s image, naming the file.
+pub(crate) fn draw_err(path: &Path) -> impl Fn(&dyn std::fmt::Display) -> anyhow::Error + '_ {
+    move |e| anyhow!("{}: {e}", path.display())
+}
+
+/// A chart with plain axes.
+pub(crate) type Chart<'a, 'b> = ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// One panel of a figure into `area`: `caption`, axes over `x` and `y` described by `desc`
+/// (`y_label_px` wide for the y labels), and their mesh drawn.
+///
+/// # Errors
+/// The image cannot be drawn.
+pub(crate) fn panel<'a, 'b>(
+    area: &'a DrawingArea<BitMapBackend<'b>, Shift>,
+    path: &Path,
+    caption: &str,
+    (x, y): (Range<f64>, Range<f64>),
+    [x_desc, y_desc]: [&str; 2],
+    y_label_px: u32,
+) -> Result<Chart<'a, 'b>> {
+    let draw = draw_err(path);
+    let mut chart = ChartBuilder::on(area)
+        .margin(12)
+        .caption(caption, ("sans-serif", 18))
+        .x_label_area_size(36)
+        .y_label_area_size(y_label_px)
+        .build_cartesian_2d(x, y)
+        .map_err(|e| draw(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .draw()
+        .map_err(|e| draw(&e))?;
+    Ok(chart)
+}
+
+/// Draws the legend of `chart` on a light box, at `position` (plotters' own place when
+/// `None`).
+///
+/// # Errors
+/// The image cannot be drawn.
+pub(crate) fn legend<'a, 'b: 'a>(
+    chart: &mut Chart<'a, 'b>,
+    path: &Path,
+    position: Option<SeriesLabelPosition>,
+) -> Result<()> {
+    let mut labels = chart.configure_series_labels();
+    if let Some(position) = position {
+        labels.position(position);
+    }
+    labels
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| draw_err(path)(&e))
+}
+
 /// How [`chart`] draws a series.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Style {
@@ -104,7 +166,7 @@ pub enum Style {
 pub fn chart(path: &Path, title: &str, x_desc: &str, y_desc: &str, series: &[(Series, Style)]) -> Result<()> {
     register_font()?;
     let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
-    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    let draw = draw_err(path);
     root.fill(&WHITE).map_err(|e| draw(&e))?;
     let (x0, x1, y0, y1) = bounds(&series.iter().map(|(s, _)| s).collect::<Vec<_>>());
     let mut chart = ChartBuilder::on(&root)
@@ -133,12 +195,7 @@ pub fn chart(path: &Path, title: &str, x_desc: &str, y_desc: &str, series: &[(Se
         anno.label(s.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    legend(&mut chart, path, None)?;
     root.present()
         .with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
@@ -151,28 +208,23 @@ pub fn chart(path: &Path, title: &str, x_desc: &str, y_desc: &str, series: &[(Se
 /// # Errors
 /// The image cannot be drawn.
 pub(crate) fn cdf_panel(
-    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    area: &DrawingArea<BitMapBackend<'_>, Shift>,
     path: &Path,
     [caption, x_desc, y_desc]: [&str; 3],
     magnitudes: &[(String, Vec<f64>)],
     floor: f64,
 ) -> Result<()> {
-    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    let draw = draw_err(path);
     let curves: Vec<Vec<(f64, f64)>> = magnitudes.iter().map(|(_, v)| cdf(v)).collect();
     let largest = curves.iter().flatten().map(|p| p.0).fold(floor, f64::max);
-    let mut chart = ChartBuilder::on(area)
-        .margin(12)
-        .caption(caption, ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..largest * 1.05, 0.0..1.0)
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_desc)
-        .y_desc(y_desc)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    let mut chart = panel(
+        area,
+        path,
+        caption,
+        (0.0..largest * 1.05, 0.0..1.0),
+        [x_desc, y_desc],
+        60,
+    )?;
     for (i, ((label, _), points)) in magnitudes.iter().zip(&curves).enumerate() {
         let color = COLORS[(i + 1) % COLORS.len()];
         chart
@@ -181,14 +233,7 @@ pub(crate) fn cdf_panel(
             .label(label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
-    Ok(())
+    legend(&mut chart, path, Some(SeriesLabelPosition::LowerRight))
 }
 
 /// An error figure: (left) each series' errors over time as dots, (right) the distribution
@@ -199,24 +244,13 @@ pub(crate) fn cdf_panel(
 pub fn error_figure(path: &Path, title: &str, unit: &str, series: &[Series]) -> Result<()> {
     register_font()?;
     let root = BitMapBackend::new(path, (1400, 560)).into_drawing_area();
-    let draw = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    let draw = draw_err(path);
     root.fill(&WHITE).map_err(|e| draw(&e))?;
     let root = root.titled(title, ("sans-serif", 22)).map_err(|e| draw(&e))?;
     let (left, right) = root.split_horizontally(700);
     let (t0, t1, e0, e1) = bounds(&series.iter().collect::<Vec<_>>());
-    let mut chart = ChartBuilder::on(&left)
-        .margin(12)
-        .caption("over time", ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(60)
-        .build_cartesian_2d(t0..t1, e0.min(0.0)..e1.max(0.0))
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("time (s)")
-        .y_desc(unit)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    let axes = (t0..t1, e0.min(0.0)..e1.max(0.0));
+    let mut chart = panel(&left, path, "over time", axes, ["time (s)", unit], 60)?;
     for (i, s) in series.iter().enumerate() {
         let color = COLORS[(i + 1) % COLORS.len()];
         chart
@@ -225,12 +259,7 @@ pub fn error_figure(path: &Path, title: &str, unit: &str, series: &[Series]) -> 
             .label(s.label.clone())
             .legend(move |(x, y)| Circle::new((x + 9, y), 3, color.filled()));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    legend(&mut chart, path, None)?;
     let magnitudes: Vec<(String, Vec<f64>)> = series
         .iter()
         .map(|s| (s.label.clone(), s.points.iter().map(|p| p.1).collect()))

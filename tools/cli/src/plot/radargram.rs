@@ -3,10 +3,10 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result};
 use plotters::prelude::*;
 
-use super::register_font;
+use super::{draw_err, register_font};
 
 /// A detected feature drawn over a radargram, in data coordinates (column, sample).
 #[derive(Debug, Clone)]
@@ -140,7 +140,7 @@ pub fn radargram(path: &Path, r: &Radargram<'_>) -> Result<()> {
     register_font()?;
     let (values, full_scale) = r.processed()?;
     let (cols, rows) = (values.len(), values[0].len());
-    let err = |e: &dyn std::fmt::Display| anyhow!("{}: {e}", path.display());
+    let err = draw_err(path);
     let root = BitMapBackend::new(path, (WIDTH, HEIGHT)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let root = root.titled(r.title, ("sans-serif", 20)).map_err(|e| err(&e))?;

@@ -3,11 +3,11 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::{COLORS, Series, bounds, cdf_panel, register_font};
+use super::{COLORS, Series, bounds, cdf_panel, draw_err, legend, panel, register_font};
 
 /// Hough lines to draw over the trajectories: true ones grey, estimated ones red.
 #[derive(Debug, Clone, Default)]
@@ -114,10 +114,6 @@ pub(crate) fn plan_view(b: (f64, f64, f64, f64), w: u32, h: u32) -> ((f64, f64, 
     ((cx - hx, cx + hx, cy - hy, cy + hy), stretch)
 }
 
-fn draw_err(path: &Path) -> impl Fn(&dyn std::fmt::Display) -> anyhow::Error + '_ {
-    move |e| anyhow!("{}: {e}", path.display())
-}
-
 /// Draws the paths of `fig` from above into `area`, inside `view`.
 fn from_above(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
@@ -128,19 +124,8 @@ fn from_above(
     mark: Option<((f64, f64), (f64, f64))>,
 ) -> Result<()> {
     let draw = draw_err(path);
-    let mut chart = ChartBuilder::on(area)
-        .margin(12)
-        .caption(caption, ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(56)
-        .build_cartesian_2d(view.0..view.1, view.2..view.3)
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("x (m)")
-        .y_desc("y (m)")
-        .draw()
-        .map_err(|e| draw(&e))?;
+    let axes = (view.0..view.1, view.2..view.3);
+    let mut chart = panel(area, path, caption, axes, ["x (m)", "y (m)"], 56)?;
     for (set, color, label) in [
         (&fig.lines.truth, RGBColor(150, 150, 150), "true lines"),
         (&fig.lines.estimate, RGBColor(214, 39, 40), "estimated lines"),
@@ -191,13 +176,7 @@ fn from_above(
             ])
             .map_err(|e| draw(&e))?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    legend(&mut chart, path, Some(SeriesLabelPosition::UpperRight))?;
     Ok(())
 }
 
@@ -286,19 +265,15 @@ pub fn trajectory_figure(path: &Path, fig: &TrajectoryFigure<'_>) -> Result<()> 
     }
     let refs: Vec<&Series> = over_time.iter().map(|(s, _, _)| s).collect();
     let (t0, t1, e0, e1) = bounds(&refs);
-    let mut chart = ChartBuilder::on(&bottom_left)
-        .margin(12)
-        .caption("error over time", ("sans-serif", 18))
-        .x_label_area_size(36)
-        .y_label_area_size(60)
-        .build_cartesian_2d(t0..t1, e0.min(0.0)..e1)
-        .map_err(|e| draw(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("time (s)")
-        .y_desc("error (m)")
-        .draw()
-        .map_err(|e| draw(&e))?;
+    let axes = (t0..t1, e0.min(0.0)..e1);
+    let mut chart = panel(
+        &bottom_left,
+        path,
+        "error over time",
+        axes,
+        ["time (s)", "error (m)"],
+        60,
+    )?;
     for (s, color, width) in &over_time {
         let (color, width) = (*color, *width);
         chart
@@ -307,13 +282,7 @@ pub fn trajectory_figure(path: &Path, fig: &TrajectoryFigure<'_>) -> Result<()> 
             .label(s.label.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(width)));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| draw(&e))?;
+    legend(&mut chart, path, Some(SeriesLabelPosition::UpperLeft))?;
 
     // distribution
     let errors: Vec<(String, Vec<f64>)> = fig.runs.iter().map(|r| (r.label.clone(), r.errors())).collect();
