@@ -384,15 +384,19 @@ const WARN_AT_MOST: usize = 20;
 
 impl RadarMessages {
     /// Opens `path` in `format` (DZT or DT1) and checks its header (a DT1: every trace
-    /// header).
+    /// header). With `start_s`, a DZT starts at its first scan stamped that late or later
+    /// (its stamps count from 0) without reading the scans before it, giving the messages
+    /// [`load`] gives from there; a DT1 (stamped by its clock) starts at its beginning.
     ///
     /// # Errors
     /// As [`crate::dzt::read_dzt`] and [`crate::dt1::read_dt1`]; [`Error::UnknownFormat`]
-    /// for another format.
-    pub fn open(path: &Path, format: SourceFormat, options: &LoadOptions) -> Result<Self> {
-        let (r, traces, total, summary): (Radargram, Box<dyn TraceStream>, usize, String) = match format {
+    /// for another format; a DZT that cannot seek.
+    pub fn open(path: &Path, format: SourceFormat, options: &LoadOptions, start_s: Option<f64>) -> Result<Self> {
+        let mut first_index = 0;
+        let mut distance_before = None;
+        let (r, traces, total, summary): (Radargram, Box<dyn TraceStream>, Option<usize>, String) = match format {
             SourceFormat::Dzt => {
-                let (h, r, traces) = crate::dzt::DztStream::open(path)?;
+                let (h, r, mut traces) = crate::dzt::DztStream::open(path)?;
                 let scans = traces.scans();
                 let wheel = usize::from(h.scans_per_metre.is_finite() && h.scans_per_metre > 0.0);
                 let summary = format!(
@@ -403,7 +407,13 @@ impl RadarMessages {
                     h.range_ns,
                     h.antenna_name
                 );
-                let total = scans * (usize::from(r.channels) + wheel);
+                let mut total = Some(scans * (usize::from(r.channels) + wheel));
+                if let Some(start_s) = start_s {
+                    let (scan, before) = traces.seek_stamp((start_s * 1e9).round() as i64, options.trace_interval_s)?;
+                    first_index = scan * traces.channels().max(1);
+                    distance_before = before;
+                    total = None;
+                }
                 (r, Box::new(traces), total, summary)
             }
             SourceFormat::Dt1 => {
@@ -415,37 +425,22 @@ impl RadarMessages {
                     r.sample_interval_ns * r.samples_per_trace as f64
                 );
                 // a wheel message per trace: DT1 traces carry their position
-                (r, Box::new(traces), 2 * n, summary)
+                (r, Box::new(traces), Some(2 * n), summary)
             }
             _ => return Err(Error::UnknownFormat { path: path.into() }),
         };
+        let mut convert = TraceMessages::new(&r, options);
+        convert.last_distance = distance_before;
         Ok(Self {
-            convert: TraceMessages::new(&r, options),
+            convert,
             summary,
-            total: Some(total),
+            total,
             traces,
-            index: 0,
+            index: first_index,
             queue: std::collections::VecDeque::new(),
             wheel_scale: options.wheel_scale,
             warned: 0,
         })
-    }
-
-    /// DZT only: starts at the first scan stamped `start_s` or later (stamps count from 0),
-    /// without reading the scans before it; the messages are those [`load`] gives from there.
-    ///
-    /// # Errors
-    /// A source that is not a DZT file; a file that cannot seek.
-    pub fn open_dzt_at(path: &Path, options: &LoadOptions, start_s: f64) -> Result<Self> {
-        let mut stream = crate::dzt::DztStream::open(path)?.2;
-        let (scan, before) = stream.seek_stamp((start_s * 1e9).round() as i64, options.trace_interval_s)?;
-        let channels = stream.channels().max(1);
-        let mut this = Self::open(path, SourceFormat::Dzt, options)?;
-        this.traces = Box::new(stream);
-        this.index = scan * channels;
-        this.convert.last_distance = before;
-        this.total = None;
-        Ok(this)
     }
 
     fn warn(&mut self, what: &str) {

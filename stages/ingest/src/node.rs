@@ -116,14 +116,9 @@ impl Stage for IngestStage {
             });
         }
         if matches!(format, SourceFormat::Dzt | SourceFormat::Dt1) {
-            // streamed trace by trace: memory does not grow with the file
-            let stream = match (format, params.start_s) {
-                // a DZT's stamps count from 0 at its first scan: the start is found without
-                // reading what comes before
-                (SourceFormat::Dzt, Some(start)) => RadarMessages::open_dzt_at(path, &options, start),
-                _ => RadarMessages::open(path, format, &options),
-            }
-            .map_err(StageError::failed)?;
+            // streamed trace by trace, so memory does not grow with the file; a DZT's start is
+            // found without reading what comes before it
+            let stream = RadarMessages::open(path, format, &options, params.start_s).map_err(StageError::failed)?;
             tracing::info!("ingest: {}: {}", params.source, stream.summary);
             let total = stream
                 .total

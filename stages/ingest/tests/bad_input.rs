@@ -678,7 +678,7 @@ fn a_streamed_dzt_gives_what_the_whole_file_gives_cut_off_or_not() {
         for start_s in [0.0, 0.013, 0.2, 0.5] {
             let start_ns = (start_s * 1e9_f64).round() as i64;
             let from: Vec<_> = whole.messages.iter().filter(|m| m.1 >= start_ns).cloned().collect();
-            let sought: Vec<_> = RadarMessages::open_dzt_at(&path, &options, start_s)
+            let sought: Vec<_> = RadarMessages::open(&path, SourceFormat::Dzt, &options, Some(start_s))
                 .expect("seeks")
                 .collect();
             assert!(
@@ -702,7 +702,9 @@ fn streams_like_the_whole_file(
     use gprflow_ingest::load::{RadarMessages, load};
     let name = path.display();
     let whole = load(path, format, options).expect("loads");
-    let streamed: Vec<_> = RadarMessages::open(path, format, options).expect("opens").collect();
+    let streamed: Vec<_> = RadarMessages::open(path, format, options, None)
+        .expect("opens")
+        .collect();
     assert!(!whole.messages.is_empty(), "{name}");
     assert!(
         whole.messages == streamed,
