@@ -13,7 +13,7 @@ use gprflow_msg::{
 };
 use gprflow_record::{Recording, seconds_window};
 
-use crate::cmu::CmuSequence;
+use crate::cmu::{CmuCounts, CmuRow, CmuSequence, CmuStream, ImuRow, TruthRow, WheelRow};
 use crate::error::{Error, Result};
 use crate::format::SourceFormat;
 use crate::radargram::{Format, Radargram, RawSamples, RawTrace};
@@ -354,21 +354,32 @@ impl TraceStream for crate::dt1::Dt1Stream {
     }
 }
 
-/// A DZT or DT1 file streamed from disk as the `ingest` stage's messages (what [`load`] gives
-/// for it, in the same order), trace by trace: memory does not grow with the file. Wheel
-/// messages are scaled as they pass; skipped and corrected records are logged as warnings
-/// naming the file.
+/// A DZT or DT1 file or a CMU-GPR folder streamed from disk as the `ingest` stage's messages
+/// (what [`load`] gives for it, in the same order), trace by trace or row by row: memory does
+/// not grow with the file. Wheel messages are scaled as they pass; skipped and corrected
+/// records are logged as warnings naming the file.
 pub struct RadarMessages {
-    traces: Box<dyn TraceStream>,
+    rows: Rows,
     convert: TraceMessages,
     index: usize,
     queue: std::collections::VecDeque<(Port, i64, Vec<u8>)>,
     wheel_scale: f64,
+    /// A CMU-GPR folder's previous wheel row: stamp and distance (for the speed).
+    last_wheel: Option<(i64, f64)>,
     warned: usize,
-    /// Messages in all (traces, and wheel messages where the file gives distances), when known.
+    /// Messages in all (traces, and wheel messages where the file gives distances; a CMU-GPR
+    /// folder's rows), when known.
     pub total: Option<usize>,
     /// What was read, for logs.
     pub summary: String,
+}
+
+/// Where a [`RadarMessages`] takes its records.
+enum Rows {
+    /// A radar file's traces.
+    Traces(Box<dyn TraceStream>),
+    /// A CMU-GPR folder's rows, in stamp order.
+    Cmu(CmuStream),
 }
 
 impl std::fmt::Debug for RadarMessages {
@@ -383,18 +394,21 @@ impl std::fmt::Debug for RadarMessages {
 const WARN_AT_MOST: usize = 20;
 
 impl RadarMessages {
-    /// Opens `path` in `format` (DZT or DT1) and checks its header (a DT1: every trace
-    /// header). With `start_s`, a DZT starts at its first scan stamped that late or later
-    /// (its stamps count from 0) without reading the scans before it, giving the messages
-    /// [`load`] gives from there; a DT1 (stamped by its clock) starts at its beginning.
+    /// Opens `path` in `format` (DZT, DT1 or CMU-GPR) and checks its header (a DT1: every
+    /// trace header; a CMU-GPR folder: every line of every file, refused as
+    /// [`crate::cmu::read_cmu_sequence`] refuses it). With `start_s`, a DZT starts at its first
+    /// scan stamped that late or later (its stamps count from 0) without reading the scans
+    /// before it, giving the messages [`load`] gives from there; a DT1 and a CMU-GPR folder
+    /// (stamped by their clocks) start at their beginning.
     ///
     /// # Errors
-    /// As [`crate::dzt::read_dzt`] and [`crate::dt1::read_dt1`]; [`Error::UnknownFormat`]
-    /// for another format; a DZT that cannot seek.
+    /// As [`crate::dzt::read_dzt`], [`crate::dt1::read_dt1`] and
+    /// [`crate::cmu::read_cmu_sequence`]; [`Error::UnknownFormat`] for another format; a DZT
+    /// that cannot seek.
     pub fn open(path: &Path, format: SourceFormat, options: &LoadOptions, start_s: Option<f64>) -> Result<Self> {
         let mut first_index = 0;
         let mut distance_before = None;
-        let (r, traces, total, summary): (Radargram, Box<dyn TraceStream>, Option<usize>, String) = match format {
+        let (r, rows, total, summary): (Radargram, Rows, Option<usize>, String) = match format {
             SourceFormat::Dzt => {
                 let (h, r, mut traces) = crate::dzt::DztStream::open(path)?;
                 let scans = traces.scans();
@@ -414,7 +428,7 @@ impl RadarMessages {
                     distance_before = before;
                     total = None;
                 }
-                (r, Box::new(traces), total, summary)
+                (r, Rows::Traces(Box::new(traces)), total, summary)
             }
             SourceFormat::Dt1 => {
                 let (_, r, traces) = crate::dt1::Dt1Stream::open(path)?;
@@ -425,7 +439,13 @@ impl RadarMessages {
                     r.sample_interval_ns * r.samples_per_trace as f64
                 );
                 // a wheel message per trace: DT1 traces carry their position
-                (r, Box::new(traces), Some(2 * n), summary)
+                (r, Rows::Traces(Box::new(traces)), Some(2 * n), summary)
+            }
+            SourceFormat::CmuGpr => {
+                let (counts, r, rows) = CmuStream::open(path)?;
+                let summary = cmu_summary("CMU-GPR (streamed)", &counts, r.samples_per_trace);
+                // a message per row: the traces carry no distance
+                (r, Rows::Cmu(rows), Some(counts.rows()), summary)
             }
             _ => return Err(Error::UnknownFormat { path: path.into() }),
         };
@@ -435,10 +455,11 @@ impl RadarMessages {
             convert,
             summary,
             total,
-            traces,
+            rows,
             index: first_index,
             queue: std::collections::VecDeque::new(),
             wheel_scale: options.wheel_scale,
+            last_wheel: None,
             warned: 0,
         })
     }
@@ -449,6 +470,33 @@ impl RadarMessages {
         }
         self.warned += 1;
     }
+
+    /// The messages of the next trace or row, appended to `out`; false at the end. Skipped
+    /// records found on the way are warned of.
+    fn read_next(&mut self, out: &mut Vec<(Port, i64, Vec<u8>)>) -> bool {
+        let (record, dropped) = match &mut self.rows {
+            // a radar file's trace is what a CMU-GPR folder's radar row reads as
+            Rows::Traces(traces) => (traces.next().map(CmuRow::Gpr), traces.take_dropped()),
+            Rows::Cmu(rows) => (rows.next(), std::mem::take(&mut rows.dropped)),
+        };
+        for d in dropped {
+            self.warn(&d.to_string());
+        }
+        match record {
+            None => return false,
+            Some(CmuRow::Gpr(trace)) => {
+                self.convert.push(self.index, &trace, out);
+                self.index += 1;
+                for line in std::mem::take(&mut self.convert.corrected) {
+                    self.warn(&line);
+                }
+            }
+            Some(CmuRow::Wheel(w)) => out.push(wheel_message(&w, &mut self.last_wheel)),
+            Some(CmuRow::Imu(s)) => out.push(imu_message(&s)),
+            Some(CmuRow::Truth(p)) => out.push(truth_message(&p)),
+        }
+        true
+    }
 }
 
 impl Iterator for RadarMessages {
@@ -456,20 +504,12 @@ impl Iterator for RadarMessages {
 
     fn next(&mut self) -> Option<Self::Item> {
         while self.queue.is_empty() {
-            let Some(trace) = self.traces.next() else {
-                for d in self.traces.take_dropped() {
-                    self.warn(&d.to_string());
-                }
+            let mut out = Vec::with_capacity(2);
+            if !self.read_next(&mut out) {
                 if self.warned > WARN_AT_MOST {
                     tracing::warn!("ingest: ... {} records skipped or corrected in all", self.warned);
                 }
                 return None;
-            };
-            let mut out = Vec::with_capacity(2);
-            self.convert.push(self.index, &trace, &mut out);
-            self.index += 1;
-            for line in std::mem::take(&mut self.convert.corrected) {
-                self.warn(&line);
             }
             for (port, stamp, payload) in out {
                 if port == Port::Wheel && self.wheel_scale != 1.0 {
@@ -489,74 +529,87 @@ impl Iterator for RadarMessages {
 fn load_cmu(seq: &CmuSequence, options: &LoadOptions) -> Loaded {
     let mut loaded = load_radargram(&seq.gpr, options);
     loaded.dropped.extend(seq.dropped.iter().map(ToString::to_string));
-    let mut last: Option<(i64, f64)> = None;
+    let mut last_wheel = None;
     for w in &seq.wheel {
-        let speed = match last {
-            Some((t0, d0)) if w.stamp_ns > t0 => (w.distance_m - d0) / ((w.stamp_ns - t0) as f64 * 1e-9),
-            _ => 0.0,
-        };
-        last = Some((w.stamp_ns, w.distance_m));
-        let m = WheelOdometry {
-            header: Header::new(w.stamp_ns, "odom"),
-            distance_m: w.distance_m,
-            ticks: 0,
-            speed_mps: speed,
-        };
-        loaded.messages.push((Port::Wheel, w.stamp_ns, encode(&m)));
+        loaded.messages.push(wheel_message(w, &mut last_wheel));
     }
-    for s in seq.imu.iter().flatten() {
-        let [qw, qx, qy, qz] = s.orientation_wxyz;
-        let m = Imu {
-            header: Header::new(s.stamp_ns, "imu"),
-            orientation: Quaternion {
-                x: qx,
-                y: qy,
-                z: qz,
-                w: qw,
-            },
-            angular_velocity: Vector3 {
-                x: s.gyro_radps[0],
-                y: s.gyro_radps[1],
-                z: s.gyro_radps[2],
-            },
-            linear_acceleration: Vector3 {
-                x: s.accel_mps2[0],
-                y: s.accel_mps2[1],
-                z: s.accel_mps2[2],
-            },
-            ..Imu::default()
-        };
-        loaded.messages.push((Port::Imu, s.stamp_ns, encode(&m)));
-    }
-    for p in seq.truth.iter().flatten() {
-        // the total station measures the prism position only: orientation left at identity
-        let m = PoseStamped {
-            header: Header::new(p.stamp_ns, "world"),
-            pose: Pose {
-                position: Point {
-                    x: p.position_m[0],
-                    y: p.position_m[1],
-                    z: p.position_m[2],
-                },
-                orientation: Quaternion {
-                    x: 0.0,
-                    y: 0.0,
-                    z: 0.0,
-                    w: 1.0,
-                },
-            },
-        };
-        loaded.messages.push((Port::Truth, p.stamp_ns, encode(&m)));
-    }
-    loaded.summary = format!(
-        "CMU-GPR: {} traces x {} samples, {} IMU, {} wheel, {} truth rows",
-        seq.gpr.traces.len(),
-        seq.gpr.samples_per_trace,
-        seq.imu.as_ref().map_or(0, Vec::len),
-        seq.wheel.len(),
-        seq.truth.as_ref().map_or(0, Vec::len)
-    );
+    loaded.messages.extend(seq.imu.iter().flatten().map(imu_message));
+    loaded.messages.extend(seq.truth.iter().flatten().map(truth_message));
+    loaded.summary = cmu_summary("CMU-GPR", &seq.counts(), seq.gpr.samples_per_trace);
     loaded
+}
+
+fn cmu_summary(what: &str, counts: &CmuCounts, samples_per_trace: usize) -> String {
+    format!(
+        "{what}: {} traces x {samples_per_trace} samples, {} IMU, {} wheel, {} truth rows",
+        counts.gpr,
+        counts.imu.unwrap_or(0),
+        counts.wheel,
+        counts.truth.unwrap_or(0)
+    )
+}
+
+/// A wheel row as a message, its speed from `last` (the previous row's stamp and distance),
+/// which it then holds.
+fn wheel_message(w: &WheelRow, last: &mut Option<(i64, f64)>) -> (Port, i64, Vec<u8>) {
+    let speed = match *last {
+        Some((t0, d0)) if w.stamp_ns > t0 => (w.distance_m - d0) / ((w.stamp_ns - t0) as f64 * 1e-9),
+        _ => 0.0,
+    };
+    *last = Some((w.stamp_ns, w.distance_m));
+    let m = WheelOdometry {
+        header: Header::new(w.stamp_ns, "odom"),
+        distance_m: w.distance_m,
+        ticks: 0,
+        speed_mps: speed,
+    };
+    (Port::Wheel, w.stamp_ns, encode(&m))
+}
+
+fn imu_message(s: &ImuRow) -> (Port, i64, Vec<u8>) {
+    let [qw, qx, qy, qz] = s.orientation_wxyz;
+    let m = Imu {
+        header: Header::new(s.stamp_ns, "imu"),
+        orientation: Quaternion {
+            x: qx,
+            y: qy,
+            z: qz,
+            w: qw,
+        },
+        angular_velocity: Vector3 {
+            x: s.gyro_radps[0],
+            y: s.gyro_radps[1],
+            z: s.gyro_radps[2],
+        },
+        linear_acceleration: Vector3 {
+            x: s.accel_mps2[0],
+            y: s.accel_mps2[1],
+            z: s.accel_mps2[2],
+        },
+        ..Imu::default()
+    };
+    (Port::Imu, s.stamp_ns, encode(&m))
+}
+
+fn truth_message(p: &TruthRow) -> (Port, i64, Vec<u8>) {
+    // the total station measures the prism position only: orientation left at identity
+    let m = PoseStamped {
+        header: Header::new(p.stamp_ns, "world"),
+        pose: Pose {
+            position: Point {
+                x: p.position_m[0],
+                y: p.position_m[1],
+                z: p.position_m[2],
+            },
+            orientation: Quaternion {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                w: 1.0,
+            },
+        },
+    };
+    (Port::Truth, p.stamp_ns, encode(&m))
 }
 
 /// The MCAP topic behind each port (explicit, else found by type and name).

@@ -1,7 +1,7 @@
 //! The `ingest` stage: plays a recording (MCAP, CMU-GPR folder, DZT, DT1/HD) as its raw
-//! traces, sweeps, IMU, wheel odometry and ground truth, in stamp order. Reading and encoding
-//! are [`crate::load::load`]'s; the stage checks its parameters and hands the messages to the
-//! player.
+//! traces, sweeps, IMU, wheel odometry and ground truth, in stamp order, streamed from disk.
+//! Reading and encoding are [`crate::load`]'s; the stage checks its parameters and hands the
+//! messages to the player.
 
 use std::path::Path;
 
@@ -10,7 +10,7 @@ use gprflow_stage::params::positive;
 use gprflow_stage::{Outputs, ParamError, PortSpec, Ports, Produce, Stage, StageError};
 
 use crate::format::SourceFormat;
-use crate::load::{LoadOptions, McapStream, Port, RadarMessages, TopicMap, load};
+use crate::load::{LoadOptions, McapStream, Port, RadarMessages, TopicMap};
 
 /// Parameters of the `ingest` stage.
 #[derive(Debug, Clone, serde::Deserialize, schemars::JsonSchema)]
@@ -62,7 +62,7 @@ fn default_trace_interval() -> f64 {
 }
 
 impl IngestParams {
-    /// What [`load`] needs of these parameters.
+    /// What the readers of [`crate::load`] need of these parameters.
     fn load_options(&self) -> LoadOptions {
         LoadOptions {
             trace_interval_s: self.trace_interval_s,
@@ -115,41 +115,19 @@ impl Stage for IngestStage {
                 player: Player::streaming(Box::new(source), total, params.pace, params.speed),
             });
         }
-        if matches!(format, SourceFormat::Dzt | SourceFormat::Dt1) {
-            // streamed trace by trace, so memory does not grow with the file; a DZT's start is
-            // found without reading what comes before it
-            let stream = RadarMessages::open(path, format, &options, params.start_s).map_err(StageError::failed)?;
-            tracing::info!("ingest: {}: {}", params.source, stream.summary);
-            let total = stream
-                .total
-                .filter(|_| params.start_s.is_none() && params.end_s.is_none());
-            let first = (format == SourceFormat::Dzt).then_some(0);
-            let source = window_from_first(stream, first, params.start_s, params.end_s)
-                .map(|(port, stamp, data)| (port as usize, stamp, data));
-            return Ok(Self {
-                player: Player::streaming(Box::new(source), total, params.pace, params.speed),
-            });
-        }
-        // CMU-GPR folders are read whole (their readers take the files at once).
-        let loaded = load(path, format, &options).map_err(StageError::failed)?;
-        tracing::info!("ingest: {}: {}", params.source, loaded.summary);
-        for d in loaded.dropped.iter().take(20) {
-            tracing::warn!("ingest: skipped {d}");
-        }
-        if loaded.dropped.len() > 20 {
-            tracing::warn!("ingest: ... {} records skipped in all", loaded.dropped.len());
-        }
-        let first = loaded.messages.first().map_or(0, |m| m.1);
-        let at = |s: f64| first.saturating_add((s * 1e9).round() as i64);
-        let (start, end) = (params.start_s.map(at), params.end_s.map(at));
-        let messages = loaded
-            .messages
-            .into_iter()
-            .filter(|m| start.is_none_or(|s| m.1 >= s) && end.is_none_or(|e| m.1 < e))
-            .map(|(port, stamp, data)| (port as usize, stamp, data))
-            .collect();
+        // the rest stream trace by trace (DZT, DT1) or row by row (a CMU-GPR folder, whose files
+        // are checked whole first), so memory does not grow with the file; a DZT's start is
+        // found without reading what comes before it
+        let stream = RadarMessages::open(path, format, &options, params.start_s).map_err(StageError::failed)?;
+        tracing::info!("ingest: {}: {}", params.source, stream.summary);
+        let total = stream
+            .total
+            .filter(|_| params.start_s.is_none() && params.end_s.is_none());
+        let first = (format == SourceFormat::Dzt).then_some(0);
+        let source = window_from_first(stream, first, params.start_s, params.end_s)
+            .map(|(port, stamp, data)| (port as usize, stamp, data));
         Ok(Self {
-            player: Player::new(messages, params.pace, params.speed),
+            player: Player::streaming(Box::new(source), total, params.pace, params.speed),
         })
     }
 
@@ -227,6 +205,39 @@ mod tests {
                 ..params()
             });
             assert!(e.starts_with("wheel_scale: must be a positive number"), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_cmu_folders_window_is_what_the_whole_folder_gives_from_its_first_message() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rows = |header: &str, from_s: f64| {
+            let body: String = (0..10)
+                .map(|i| format!("{:.9},{i}\n", from_s + 0.1 * f64::from(i)))
+                .collect();
+            format!("{header}\n{body}")
+        };
+        std::fs::write(dir.path().join("gpr_meas.csv"), rows("t,amp_1", 10.05)).expect("write");
+        std::fs::write(dir.path().join("we_odom_meas.csv"), rows("t,dist", 10.0)).expect("write");
+        let options = LoadOptions::default();
+        let whole = crate::load::load(dir.path(), SourceFormat::CmuGpr, &options).expect("loads");
+        let first = whole.messages[0].1;
+        let at = |s: f64| first + (s * 1e9).round() as i64;
+        for (start_s, end_s) in [
+            (None, None),
+            (Some(0.25), None),
+            (Some(0.25), Some(0.6)),
+            (None, Some(0.3)),
+        ] {
+            let want: Vec<_> = whole
+                .messages
+                .iter()
+                .filter(|m| start_s.is_none_or(|s| m.1 >= at(s)) && end_s.is_none_or(|e| m.1 < at(e)))
+                .cloned()
+                .collect();
+            let stream = RadarMessages::open(dir.path(), SourceFormat::CmuGpr, &options, start_s).expect("opens");
+            let got: Vec<_> = window_from_first(stream, None, start_s, end_s).collect();
+            assert!(!want.is_empty() && got == want, "{start_s:?}..{end_s:?}");
         }
     }
 

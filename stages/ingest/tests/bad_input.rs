@@ -740,3 +740,149 @@ fn a_streamed_dt1_gives_what_the_whole_file_gives_cut_off_or_not() {
         }
     }
 }
+
+/// Stamp of a written CMU-GPR folder's first row (ns).
+const CMU_T0_NS: i64 = 1_600_000_000_000_000_000;
+
+/// Writes a CMU-GPR folder as the simulator writes one (headers, stamps with nine decimals),
+/// 4 s at the rig's rates: radar 50 Hz x 64 samples, wheel 100 Hz, IMU 200 Hz, total station
+/// 10 Hz, so that every radar stamp is also a wheel and an IMU stamp and every total-station
+/// stamp is all four. With what the reader skips: a NaN wheel row, a repeated IMU stamp, and
+/// CRLF line ends and a blank line in the total-station file. Returns the text of
+/// `gpr_meas.csv`.
+fn write_cmu_folder(dir: &Path) -> String {
+    std::fs::create_dir_all(dir).expect("folder");
+    let at = |period_ms: i64, i: i64| CMU_T0_NS + i * period_ms * 1_000_000;
+    let gpr: Vec<(i64, Vec<i16>)> = (0..200)
+        .map(|i| {
+            let amps = (0..64).map(|s| ((i * 37 + s * 101) % 2000 - 1000) as i16).collect();
+            (at(20, i), amps)
+        })
+        .collect();
+    let mut wheel: Vec<(i64, Vec<f64>)> = (0..400).map(|i| (at(10, i), vec![0.005 * i as f64])).collect();
+    wheel[150].1[0] = f64::NAN;
+    let mut imu: Vec<(i64, Vec<f64>)> = (0..800)
+        .map(|i| {
+            let x = i as f64 * 1e-3;
+            (at(5, i), vec![x, -x, 9.81, 0.01, 0.02, x, 1.0, 0.0, 0.0, 0.0])
+        })
+        .collect();
+    imu.insert(300, imu[299].clone());
+    let truth: Vec<(i64, Vec<f64>)> = (0..40).map(|i| (at(100, i), vec![0.05 * i as f64, 1.0, 0.0])).collect();
+    let gpr_text = gpr_csv(&gpr, 64);
+    let truth_text = table_csv("t,px,py,pz", &truth).replace('\n', "\r\n") + "\r\n";
+    for (name, text) in [
+        (cmu::GPR_FILE, gpr_text.clone()),
+        (cmu::WHEEL_FILE, table_csv("t,dist", &wheel)),
+        (cmu::IMU_FILE, table_csv("t,ax,ay,az,gx,gy,gz,qw,qx,qy,qz", &imu)),
+        (cmu::TRUTH_FILE, truth_text),
+    ] {
+        std::fs::write(dir.join(name), text).expect("write");
+    }
+    gpr_text
+}
+
+#[test]
+fn a_streamed_cmu_sequence_gives_what_the_whole_folder_gives_cut_off_or_not() {
+    use gprflow_ingest::SourceFormat;
+    use gprflow_ingest::load::{LoadOptions, Port, RadarMessages};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let whole = dir.path().join("sequence");
+    let gpr_text = write_cmu_folder(&whole);
+    // a copy whose gpr_meas.csv stops in the middle of line 121
+    let cut = dir.path().join("sequence-cut");
+    write_cmu_folder(&cut);
+    let line_start: usize = gpr_text.lines().take(120).map(|l| l.len() + 1).sum();
+    let line_len = gpr_text[line_start..].find('\n').expect("line 121 ends");
+    std::fs::write(cut.join(cmu::GPR_FILE), &gpr_text[..line_start + line_len / 2]).expect("cut");
+    for wheel_scale in [1.0, 0.98] {
+        let options = LoadOptions {
+            wheel_scale,
+            ..LoadOptions::default()
+        };
+        for (path, traces) in [(&whole, 200), (&cut, 119)] {
+            let is_cut = path == &cut;
+            let loaded = streams_like_the_whole_file(path, SourceFormat::CmuGpr, &options, is_cut);
+            let name = path.display();
+            // a NaN wheel row and a repeated IMU stamp skipped
+            let count = |port| loaded.messages.iter().filter(|m| m.0 == port).count();
+            let counts = [Port::Gpr, Port::Wheel, Port::Imu, Port::Truth].map(count);
+            assert_eq!(counts, [traces, 399, 800, 40], "{name}");
+            assert_eq!(
+                loaded.dropped.len(),
+                2 + usize::from(is_cut),
+                "{name}: {:?}",
+                loaded.dropped
+            );
+            // on an equal stamp: radar, wheel, IMU, total station, as the files are listed
+            let first: Vec<Port> = loaded
+                .messages
+                .iter()
+                .take_while(|m| m.1 == CMU_T0_NS)
+                .map(|m| m.0)
+                .collect();
+            assert_eq!(first, [Port::Gpr, Port::Wheel, Port::Imu, Port::Truth], "{name}");
+            let stream = RadarMessages::open(path, SourceFormat::CmuGpr, &options, None).expect("opens");
+            assert_eq!(stream.total, Some(loaded.messages.len()), "{name}: counted at open");
+        }
+    }
+}
+
+#[test]
+fn a_cmu_folder_with_a_bad_cell_is_refused_at_open_naming_file_line_and_field() {
+    use gprflow_ingest::SourceFormat;
+    use gprflow_ingest::load::{LoadOptions, RadarMessages};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = dir.path().join("sequence");
+    write_cmu_folder(&folder);
+    let replace_cell = |file: &str, line: usize, column: usize, cell: &str| {
+        let path = folder.join(file);
+        let text = std::fs::read_to_string(&path).expect("read");
+        let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+        let mut cells: Vec<&str> = lines[line - 1].split(',').collect();
+        if cell.is_empty() {
+            cells.remove(column - 1);
+        } else {
+            cells[column - 1] = cell;
+        }
+        lines[line - 1] = cells.join(",");
+        std::fs::write(&path, lines.join("\n") + "\n").expect("write");
+        text
+    };
+    let refused = |want: String| {
+        let e = RadarMessages::open(&folder, SourceFormat::CmuGpr, &LoadOptions::default(), None)
+            .expect_err("refused at open, before the first message");
+        assert_eq!(message(&e), want);
+        let whole = read_cmu_sequence(&folder).expect_err("refused read whole");
+        assert_eq!(message(&whole), want, "as the whole-folder reader refuses it");
+    };
+    // a bad cell in the middle of imu_meas.csv (tens of kilobytes in), an amplitude out of
+    // int16, a short row: each names the file, line and field
+    for (file, line, column, cell, want) in [
+        (
+            cmu::IMU_FILE,
+            401,
+            4,
+            "9.81x",
+            r#":401: column 4 (az): not a number: "9.81x""#,
+        ),
+        (
+            cmu::GPR_FILE,
+            101,
+            3,
+            "40000",
+            r#":101: column 3 (amp_2): "40000": not a whole count in -32768..=32767"#,
+        ),
+        (cmu::WHEEL_FILE, 200, 2, "", ":200: 1 columns, the header row has 2"),
+    ] {
+        let original = replace_cell(file, line, column, cell);
+        refused(format!("{}{want}", folder.join(file).display()));
+        std::fs::write(folder.join(file), original).expect("restore");
+    }
+    let wheel = folder.join(cmu::WHEEL_FILE);
+    std::fs::remove_file(&wheel).expect("remove");
+    refused(format!(
+        "{}: not found (a CMU-GPR sequence needs its wheel odometry)",
+        wheel.display()
+    ));
+}
