@@ -280,24 +280,53 @@ pub enum PositionAxes {
 }
 
 /// Absolute position of the body origin (a GPS fix, or a localising-GPR prior-map match).
+/// With [`PositionFix::moving`], the fix was taken `dt` before (or after) the state and is
+/// compared with the state's position moved by its velocity: `t + v dt - z`, so the velocity
+/// is estimated with the fix instead of being frozen into it.
 #[derive(Debug, Clone)]
 pub struct PositionFix {
-    keys: [VarId; 1],
+    /// The pose, and the velocity when `dt_s` is not zero.
+    keys: [VarId; 2],
+    key_count: usize,
+    dt_s: f64,
     position_m: Vector3<f64>,
     noise: NoiseModel,
 }
 
 impl PositionFix {
+    /// A fix of the pose's position.
+    ///
     /// # Errors
     /// A noise model whose dimension does not match `axes`.
     pub fn new(key: VarId, position_m: Vector3<f64>, axes: PositionAxes, noise: NoiseModel) -> Result<Self> {
+        Self::moving(key, key, 0.0, position_m, axes, noise)
+    }
+
+    /// A fix taken `dt_s` after the state of `pose` (before it when negative), whose velocity
+    /// is `velocity`.
+    ///
+    /// # Errors
+    /// A noise model whose dimension does not match `axes`; a `dt_s` that is not finite.
+    pub fn moving(
+        pose: VarId,
+        velocity: VarId,
+        dt_s: f64,
+        position_m: Vector3<f64>,
+        axes: PositionAxes,
+        noise: NoiseModel,
+    ) -> Result<Self> {
         let n = match axes {
             PositionAxes::Xyz => 3,
             PositionAxes::Xy => 2,
         };
         check_dim(&noise, n, "a position fix")?;
+        if !dt_s.is_finite() {
+            return Err(Error::BadMeasurement(format!("a position fix {dt_s} s from its state")));
+        }
         Ok(Self {
-            keys: [key],
+            keys: [pose, velocity],
+            key_count: if dt_s == 0.0 { 1 } else { 2 },
+            dt_s,
             position_m,
             noise,
         })
@@ -306,7 +335,7 @@ impl PositionFix {
 
 impl Factor for PositionFix {
     fn keys(&self) -> &[VarId] {
-        &self.keys
+        &self.keys[..self.key_count]
     }
     fn noise(&self) -> &NoiseModel {
         &self.noise
@@ -314,10 +343,17 @@ impl Factor for PositionFix {
     fn evaluate(&self, values: &Values, jacobians: Option<&mut [DMatrix<f64>]>) -> Result<DVector<f64>> {
         let p = values.pose(self.keys[0])?;
         let n = self.noise.dim();
-        let r = p.trans_m - self.position_m;
+        let mut r = p.trans_m - self.position_m;
+        if self.key_count == 2 {
+            r += values.velocity(self.keys[1])? * self.dt_s;
+        }
         if let Some(j) = jacobians {
             j[0].fill(0.0);
             j[0].view_mut((0, 3), (n, 3)).copy_from(&p.rot.view((0, 0), (n, 3)));
+            if self.key_count == 2 {
+                j[1].fill(0.0);
+                j[1].fill_diagonal(self.dt_s);
+            }
         }
         Ok(DVector::from_iterator(n, r.iter().take(n).copied()))
     }
@@ -615,8 +651,14 @@ mod tests {
         let z = Vector3::new(1.0, 2.0, 3.0);
         assert_jacobians(&PositionFix::new(a, z, PositionAxes::Xyz, n3.clone()).expect("f"), &v);
         let n2 = NoiseModel::isotropic(2, 0.1).expect("noise");
-        assert_jacobians(&PositionFix::new(a, z, PositionAxes::Xy, n2).expect("f"), &v);
+        assert_jacobians(&PositionFix::new(a, z, PositionAxes::Xy, n2.clone()).expect("f"), &v);
         assert_jacobians(&Planar::new(b, 0.2, n3).expect("f"), &v);
+        let mut v = v;
+        let vel = v.push(Variable::Velocity(Vector3::new(20.0, -3.0, 0.5)));
+        assert_jacobians(
+            &PositionFix::moving(a, vel, -0.04, z, PositionAxes::Xy, n2).expect("f"),
+            &v,
+        );
     }
 
     #[test]

@@ -559,6 +559,12 @@ impl Stage for EstimateStage {
     fn finish(&mut self, out: &mut Outputs) -> Result<(), StageError> {
         self.est.finish().map_err(StageError::failed)?;
         self.drops.report(Self::NAME);
+        if self.est.unmatched_map_fixes() > 0 {
+            tracing::warn!(
+                map_fixes = self.est.unmatched_map_fixes(),
+                "estimate: map fixes with no state within a state period (a gap in the IMU), not used"
+            );
+        }
         if self.unlocked_map_fixes > 0 {
             tracing::info!(
                 map_fixes = self.unlocked_map_fixes,

@@ -221,6 +221,18 @@ pub struct OnlineEstimator {
     /// has solved with (the registration gate widens from it).
     registered_query_ns: Option<i64>,
     solved_query_ns: Option<i64>,
+    /// Map fixes nearer the state to come than the newest one.
+    waiting_fixes: Vec<WaitingFix>,
+    /// Map fixes that waited for a state and found none within a period.
+    unmatched_fixes: u64,
+}
+
+/// A map fix waiting for its state.
+#[derive(Debug)]
+struct WaitingFix {
+    stamp_ns: i64,
+    xy_m: Vector2<f64>,
+    noise: NoiseModel,
 }
 
 impl OnlineEstimator {
@@ -247,6 +259,8 @@ impl OnlineEstimator {
             aligning: None,
             registered_query_ns: None,
             solved_query_ns: None,
+            waiting_fixes: Vec::new(),
+            unmatched_fixes: 0,
         }
     }
 
@@ -258,6 +272,13 @@ impl OnlineEstimator {
     #[must_use]
     pub fn late_updates(&self) -> u64 {
         self.late_updates
+    }
+
+    /// Map fixes that waited for the next state and found none within a state period (a
+    /// gap in the IMU).
+    #[must_use]
+    pub fn unmatched_map_fixes(&self) -> u64 {
+        self.unmatched_fixes
     }
 
     /// Number of states.
@@ -504,34 +525,73 @@ impl OnlineEstimator {
     }
 
     /// Adds a prior-map (or GPS) position fix on the ground plane for the state nearest
-    /// `stamp_ns`, moved to that state's stamp with the state's current velocity estimate (a
-    /// fix 50 ms from its state at 97 km/h is 1.35 m away otherwise).
+    /// `stamp_ns`, through that state's velocity ([`PositionFix::moving`]: a fix 50 ms from its
+    /// state at 97 km/h is 1.35 m away). A fix nearer the state still to come than the newest
+    /// one waits for it: the state is then published with the fixes up to its stamp, not
+    /// predicted past them from the state before.
     ///
     /// # Errors
-    /// A bad sigma.
+    /// A position that is not finite; a bad sigma.
     pub fn map_fix(&mut self, stamp_ns: i64, xy_m: Vector2<f64>, sigma_xy_m: [f64; 2]) -> Result<bool> {
         if !xy_m.iter().all(|v| v.is_finite()) {
             return Err(Error::BadMeasurement(format!(
                 "map fix at {stamp_ns} ns: position {xy_m:?}"
             )));
         }
-        let Some(s) = self.nearest_state(stamp_ns) else {
+        let fix = WaitingFix {
+            stamp_ns,
+            xy_m,
+            noise: NoiseModel::diagonal(&sigma_xy_m)?,
+        };
+        match self.stamps_ns.last() {
+            Some(newest) if stamp_ns - newest > self.period_ns() / 2 => {
+                self.waiting_fixes.push(fix);
+                Ok(true)
+            }
+            _ => self.add_map_fix(fix),
+        }
+    }
+
+    /// Map fixes not yet attached to a state (waiting for the next one).
+    #[must_use]
+    pub fn waiting_map_fixes(&self) -> usize {
+        self.waiting_fixes.len()
+    }
+
+    fn add_map_fix(&mut self, fix: WaitingFix) -> Result<bool> {
+        let Some(s) = self.nearest_state(fix.stamp_ns) else {
             return Ok(false);
         };
-        let noise = NoiseModel::diagonal(&sigma_xy_m)?;
-        let dt = (self.stamps_ns[s] - stamp_ns) as f64 * 1e-9;
-        // a state that has left the window has no current estimate to move the fix with
-        let Ok(v) = self.values.velocity(self.states[s].velocity) else {
-            return Ok(false);
-        };
-        let at = xy_m + Vector2::new(v.x, v.y) * dt;
-        self.graph.add(PositionFix::new(
+        let dt = (fix.stamp_ns - self.stamps_ns[s]) as f64 * 1e-9;
+        self.graph.add(PositionFix::moving(
             self.states[s].pose,
-            Vector3::new(at.x, at.y, 0.0),
+            self.states[s].velocity,
+            dt,
+            Vector3::new(fix.xy_m.x, fix.xy_m.y, 0.0),
             PositionAxes::Xy,
-            noise,
+            fix.noise,
         )?);
         Ok(true)
+    }
+
+    /// Attaches the waiting map fixes that are now nearest an existing state (all of them at
+    /// the end of the run); returns how many found none.
+    fn attach_waiting_fixes(&mut self, all: bool) -> Result<u64> {
+        let Some(&newest) = self.stamps_ns.last() else {
+            return Ok(0);
+        };
+        let half = self.period_ns() / 2;
+        let (now, later): (Vec<_>, Vec<_>) = std::mem::take(&mut self.waiting_fixes)
+            .into_iter()
+            .partition(|f| all || f.stamp_ns - newest <= half);
+        self.waiting_fixes = later;
+        let mut unmatched = 0;
+        for fix in now {
+            if !self.add_map_fix(fix)? {
+                unmatched += 1;
+            }
+        }
+        Ok(unmatched)
     }
 
     fn add_state(&mut self, stamp_ns: i64) -> Result<StateOutput> {
@@ -594,6 +654,7 @@ impl OnlineEstimator {
         }
         self.wheel_at_state = self.wheel_distance_m;
         self.stamps_ns.push(stamp_ns);
+        self.unmatched_fixes += self.attach_waiting_fixes(false)?;
         let bias = *self.values.bias(keys.bias)?;
         self.pim = Some(ImuPreintegration::new(self.params.imu, bias));
         let report = self
@@ -674,6 +735,7 @@ impl OnlineEstimator {
     /// # Errors
     /// A solver failure.
     pub fn finish(&mut self) -> Result<()> {
+        self.unmatched_fixes += self.attach_waiting_fixes(true)?;
         if !self.states.is_empty() {
             let lm = self.smoother.finish(&self.graph, &mut self.values)?;
             tracing::info!(
@@ -978,6 +1040,29 @@ mod tests {
         let (first, _) = run(0.0);
         assert_eq!(first.stamp_ns, 0);
         assert!(angle(&first.pose) > 0.1, "{}", angle(&first.pose));
+    }
+
+    /// Map fixes at 100 Hz between the states: those nearer the next state wait for it, and
+    /// each is compared with its state moved by the state's velocity (10-90 ms at 1 m/s is 1-9
+    /// cm: a fix taken as its state's position, or moved the wrong way, shows).
+    #[test]
+    fn map_fixes_wait_for_the_state_they_are_nearest() {
+        let mut published = Vec::new();
+        let est = drive_circle(6, 1.0, |est, s| {
+            published.push((s.stamp_ns, s.pose.trans_m));
+            for k in 1..10 {
+                let stamp = s.stamp_ns + k * 10_000_000;
+                let at = circle_truth(stamp as f64 * 1e-9).trans_m;
+                assert!(est.map_fix(stamp, at.xy(), [0.02, 0.02]).expect("fix"));
+            }
+            // 60 to 90 ms after the state: nearer the next one
+            assert_eq!(est.waiting_map_fixes(), 4);
+        });
+        assert_eq!((est.waiting_map_fixes(), est.unmatched_map_fixes()), (0, 0));
+        for (stamp, p) in &published {
+            let off = (p - circle_truth(*stamp as f64 * 1e-9).trans_m).xy().norm();
+            assert!(off < 0.002, "state at {stamp} ns published {off} m from the truth");
+        }
     }
 
     #[test]
