@@ -698,7 +698,8 @@ impl Default for TruthConfig {
     }
 }
 
-/// GPS/INS with WAAS-grade error: a first-order Gauss-Markov position error.
+/// GPS/INS with WAAS-grade error: a smooth (second-order Gauss-Markov) position error, as the
+/// INS between fixes makes it.
 #[derive(Debug, Clone, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct GpsConfig {
