@@ -24,7 +24,8 @@ pub struct LgprEvalArgs {
     pub baseline: PathBuf,
     /// Largest true lateral offset from the baseline kept, m.
     pub max_offset_m: f64,
-    /// Evaluate this pose topic (a fused estimate) instead of the map fixes.
+    /// Evaluate this pose topic (a fused estimate) instead of the map fixes, from the
+    /// run's first locked map fix on (as the fixes are) when the run holds them.
     pub topic: Option<String>,
     /// Output format.
     pub format: ReportFormat,
@@ -81,11 +82,19 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
         ..Options::default()
     };
     let mut rows = Vec::new();
+    let mut skipped = Vec::new();
     let mut all: Vec<(String, Vec<Sample>)> = Vec::new();
     for run in &args.runs {
         let rec = Recording::open(run).with_context(|| format!("{}: cannot open", run.display()))?;
         let fixes = match &args.topic {
-            Some(t) => Fixes::from_trajectory(&Trajectory::from_recording(&rec, t)?),
+            Some(t) => {
+                let fused = Fixes::from_trajectory(&Trajectory::from_recording(&rec, t)?);
+                // over the span of the run's own map fixes, when it holds them
+                match Fixes::from_recording(&rec, None).ok().and_then(|f| f.first_lock_ns()) {
+                    Some(first) => fused.from_lock(first),
+                    None => fused,
+                }
+            }
             None => Fixes::from_recording(&rec, None)?,
         };
         let (track_truth, track_gps) = truth_and_gps(run)?;
@@ -100,18 +109,28 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
             .file_stem()
             .map_or_else(|| run.display().to_string(), |s| s.to_string_lossy().into_owned());
         let Some(summary) = summarise(&samples) else {
-            bail!(
-                "{}: no fix to evaluate ({} fixes; none locked, or none within {} m of the baseline)",
+            // a pass that never locks (one beyond the overlap limit) is a result, not an error
+            eprintln!(
+                "{}: no fix to evaluate ({} fixes; none locked, or none within {} m of the baseline): left out",
                 run.display(),
                 fixes.stamps_ns.len(),
                 args.max_offset_m
             );
+            skipped.push(run.display().to_string());
+            continue;
         };
         rows.push(Row {
             run: name.clone(),
             summary,
         });
         all.push((name, samples));
+    }
+    if rows.is_empty() {
+        bail!(
+            "no run has a fix to evaluate (none locked, or none within {} m of the baseline): {}",
+            args.max_offset_m,
+            skipped.join(", ")
+        );
     }
     let pooled: Vec<Sample> = all.iter().flat_map(|(_, s)| s.iter().copied()).collect();
     if rows.len() > 1

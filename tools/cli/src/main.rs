@@ -336,7 +336,7 @@ enum Command {
         #[arg(long, default_value_t = 1.3)]
         max_offset_m: f64,
         /// Evaluate this pose topic (a fused estimate, e.g. /estimate/state) instead of the
-        /// map fixes.
+        /// map fixes, from the run's first locked map fix on (as the fixes are).
         #[arg(long)]
         topic: Option<String>,
         /// Output format.
