@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Memory of reading a long DZT file: the `ingest` stage streams it scan by scan; `gprflow
-# convert` reads it whole (the reader CMU-GPR folders still use). The file is the
+# convert` reads it whole. The file is the
 # committed GSSI_FILE____032.DZT with its scans repeated COPIES times (default 60: 64 MB).
 #
 # usage: tools/bench/dzt-stream.sh [COPIES (60)]
