@@ -329,6 +329,25 @@ pub struct Kinematics {
     pub forward_accel_mps2: f64,
 }
 
+impl Kinematics {
+    /// The body at rest at the origin, level, facing +x: the accelerometer reads gravity up.
+    #[must_use]
+    pub fn at_rest() -> Self {
+        Self {
+            position_m: Vector3::zeros(),
+            world_from_body: UnitQuaternion::identity(),
+            yaw_rad: 0.0,
+            velocity_mps: Vector3::zeros(),
+            accel_mps2: Vector3::zeros(),
+            angular_rate_radps: Vector3::zeros(),
+            specific_force_mps2: Vector3::new(0.0, 0.0, GRAVITY_MPS2),
+            odometer_m: 0.0,
+            forward_speed_mps: 0.0,
+            forward_accel_mps2: 0.0,
+        }
+    }
+}
+
 /// Sums of three sinusoids, with first and second derivatives.
 #[derive(Debug, Clone)]
 struct Wobble {

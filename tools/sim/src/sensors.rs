@@ -241,27 +241,12 @@ impl Gps {
 mod tests {
     use super::*;
 
-    fn at_rest() -> Kinematics {
-        Kinematics {
-            position_m: Vector3::zeros(),
-            world_from_body: UnitQuaternion::identity(),
-            yaw_rad: 0.0,
-            velocity_mps: Vector3::zeros(),
-            accel_mps2: Vector3::zeros(),
-            angular_rate_radps: Vector3::zeros(),
-            specific_force_mps2: Vector3::zeros(),
-            odometer_m: 0.0,
-            forward_speed_mps: 0.0,
-            forward_accel_mps2: 0.0,
-        }
-    }
-
     /// The error keeps the configured RMS and is smooth: its step between 10 Hz fixes stays
     /// near an INS's velocity error, far below a first-order process's `rms sqrt(2 dt / tau)`.
     #[test]
     fn gps_ins_error_has_its_rms_and_moves_smoothly() {
         let cfg = GpsConfig::default();
-        let k = at_rest();
+        let k = Kinematics::at_rest();
         let (mut sum_sq, mut step_sq, mut n) = (0.0, 0.0, 0.0);
         // 40 receivers x 2000 s
         for r in 0..40 {

@@ -7,14 +7,13 @@ use gprflow::msg::{self, PoseStamped, Trace};
 use gprflow::record::Recording;
 use gprflow_sim::impulse::ImpulseGpr;
 use gprflow_sim::lgpr::LgprArray;
-use gprflow_sim::motion::{GRAVITY_MPS2, Kinematics};
+use gprflow_sim::motion::Kinematics;
 use gprflow_sim::rng::Rng;
 use gprflow_sim::scenario::{self, ImpulseRadar, ImuConfig, Layer, LgprRadar, PointKind, PointObject, Ringing};
 use gprflow_sim::scene::AntennaPose;
 use gprflow_sim::sensors::Imu;
 use gprflow_sim::world::{C_M_PER_NS, World};
 use gprflow_sim::{Scenario, SimOptions, simulate, topics};
-use nalgebra::{UnitQuaternion, Vector3};
 
 /// Two-way time tolerance for picked echoes, ns (the sample interval is 0.2 ns).
 const DELAY_TOLERANCE_NS: f64 = 0.05;
@@ -309,18 +308,7 @@ fn allan_deviation_at(samples: &[f64], per_cluster: usize) -> f64 {
 fn imu_noise_matches_the_configured_densities() {
     let cfg = ImuConfig::default();
     let mut imu = Imu::new(&cfg, Rng::new(11));
-    let rest = Kinematics {
-        position_m: Vector3::zeros(),
-        world_from_body: UnitQuaternion::identity(),
-        yaw_rad: 0.0,
-        velocity_mps: Vector3::zeros(),
-        accel_mps2: Vector3::zeros(),
-        angular_rate_radps: Vector3::zeros(),
-        specific_force_mps2: Vector3::new(0.0, 0.0, GRAVITY_MPS2),
-        odometer_m: 0.0,
-        forward_speed_mps: 0.0,
-        forward_accel_mps2: 0.0,
-    };
+    let rest = Kinematics::at_rest();
     let n = (cfg.rate_hz * 1200.0) as usize;
     let mut gyro: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
     let mut accel: Vec<Vec<f64>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
@@ -366,18 +354,7 @@ fn sfcw_sweeps_put_a_reflector_at_its_delay() {
     };
     let mut with = World::new(&one_layer(eps_r, vec![rock]), 1, 0.0);
     let mut without = World::new(&one_layer(eps_r, vec![]), 1, 0.0);
-    let body = Kinematics {
-        position_m: Vector3::zeros(),
-        world_from_body: UnitQuaternion::identity(),
-        yaw_rad: 0.0,
-        velocity_mps: Vector3::zeros(),
-        accel_mps2: Vector3::zeros(),
-        angular_rate_radps: Vector3::zeros(),
-        specific_force_mps2: Vector3::new(0.0, 0.0, GRAVITY_MPS2),
-        odometer_m: 0.0,
-        forward_speed_mps: 0.0,
-        forward_accel_mps2: 0.0,
-    };
+    let body = Kinematics::at_rest();
     let (factory, factory_cal) = probe.factory_calibration();
     let tones = cfg.tones as usize;
     let complex = |v: &[f32], i: usize| nalgebra::Complex::new(f64::from(v[2 * i]), f64::from(v[2 * i + 1]));
