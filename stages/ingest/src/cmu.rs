@@ -114,24 +114,8 @@ pub fn read_cmu_sequence(dir: &Path) -> Result<CmuSequence> {
     let gpr = read_gpr(open_required(&gpr_path, NEEDS_GPR)?, &gpr_path)?;
     let wheel_path = dir.join(WHEEL_FILE);
     let (wheel, mut dropped) = collect_rows(wheel_rows(open_required(&wheel_path, NEEDS_WHEEL)?, &wheel_path)?)?;
-    let imu_path = dir.join(IMU_FILE);
-    let imu = match open_optional(&imu_path)? {
-        Some(file) => {
-            let (rows, d) = collect_rows(imu_rows(file, &imu_path)?)?;
-            dropped.extend(d);
-            Some(rows)
-        }
-        None => None,
-    };
-    let truth_path = dir.join(TRUTH_FILE);
-    let truth = match open_optional(&truth_path)? {
-        Some(file) => {
-            let (rows, d) = collect_rows(truth_rows(file, &truth_path)?)?;
-            dropped.extend(d);
-            Some(rows)
-        }
-        None => None,
-    };
+    let imu = read_optional(&dir.join(IMU_FILE), imu_rows, &mut dropped)?;
+    let truth = read_optional(&dir.join(TRUTH_FILE), truth_rows, &mut dropped)?;
     Ok(CmuSequence {
         dir: dir.to_owned(),
         gpr,
@@ -140,6 +124,17 @@ pub fn read_cmu_sequence(dir: &Path) -> Result<CmuSequence> {
         truth,
         dropped,
     })
+}
+
+/// Every kept row of an optional file (`None` when it is absent); its skipped rows are added
+/// to `dropped`.
+fn read_optional<V, T>(path: &Path, open: OpenRows<V, T>, dropped: &mut Vec<Dropped>) -> Result<Option<Vec<T>>> {
+    let Some(file) = open_optional(path)? else {
+        return Ok(None);
+    };
+    let (rows, d) = collect_rows(open(file, path)?)?;
+    dropped.extend(d);
+    Ok(Some(rows))
 }
 
 const NEEDS_GPR: &str = "a CMU-GPR sequence needs its radar traces";
@@ -385,24 +380,8 @@ impl CmuStream {
         let wheel_path = dir.join(WHEEL_FILE);
         let (wheel, wheel_rows) = checked(open_required(&wheel_path, NEEDS_WHEEL)?, &wheel_path, wheel_rows)?;
         let mut files = vec![MergedFile::new(gpr_rows), MergedFile::new(wheel_rows)];
-        let imu_path = dir.join(IMU_FILE);
-        let imu = match open_optional(&imu_path)? {
-            Some(file) => {
-                let (count, rows) = checked(file, &imu_path, imu_rows)?;
-                files.push(MergedFile::new(rows));
-                Some(count)
-            }
-            None => None,
-        };
-        let truth_path = dir.join(TRUTH_FILE);
-        let truth = match open_optional(&truth_path)? {
-            Some(file) => {
-                let (count, rows) = checked(file, &truth_path, truth_rows)?;
-                files.push(MergedFile::new(rows));
-                Some(count)
-            }
-            None => None,
-        };
+        let imu = merge_optional(&dir.join(IMU_FILE), imu_rows, &mut files)?;
+        let truth = merge_optional(&dir.join(TRUTH_FILE), truth_rows, &mut files)?;
         let counts = CmuCounts { gpr, wheel, imu, truth };
         let description = gpr_radargram(&gpr_path, samples_per_trace, Vec::new(), Vec::new());
         Ok((
@@ -414,6 +393,21 @@ impl CmuStream {
             },
         ))
     }
+}
+
+/// Checks an optional file whole ([`checked`]) and adds its rows to the merge; the rows it
+/// keeps, `None` when it is absent.
+fn merge_optional<V: Send + 'static, T: Into<CmuRow> + 'static>(
+    path: &Path,
+    open: OpenRows<V, T>,
+    files: &mut Vec<MergedFile>,
+) -> Result<Option<usize>> {
+    let Some(file) = open_optional(path)? else {
+        return Ok(None);
+    };
+    let (count, rows) = checked(file, path, open)?;
+    files.push(MergedFile::new(rows));
+    Ok(Some(count))
 }
 
 /// Reads the file at `reader` to its end through `open`'s rows, keeping nothing but the count
