@@ -87,9 +87,7 @@ impl Fixes {
             locked: vec![true; t.len()],
         }
     }
-}
 
-impl Fixes {
     /// The stamp of the first locked fix, if any.
     #[must_use]
     pub fn first_lock_ns(&self) -> Option<i64> {
