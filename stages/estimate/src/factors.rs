@@ -285,9 +285,8 @@ pub enum PositionAxes {
 /// is estimated with the fix instead of being frozen into it.
 #[derive(Debug, Clone)]
 pub struct PositionFix {
-    /// The pose, and the velocity when `dt_s` is not zero.
+    /// The pose, and the velocity (used when `dt_s` is not zero).
     keys: [VarId; 2],
-    key_count: usize,
     dt_s: f64,
     position_m: Vector3<f64>,
     noise: NoiseModel,
@@ -325,7 +324,6 @@ impl PositionFix {
         }
         Ok(Self {
             keys: [pose, velocity],
-            key_count: if dt_s == 0.0 { 1 } else { 2 },
             dt_s,
             position_m,
             noise,
@@ -333,9 +331,16 @@ impl PositionFix {
     }
 }
 
+impl PositionFix {
+    /// Whether the fix reaches the state's velocity (taken at another time than the state).
+    fn moves(&self) -> bool {
+        self.dt_s != 0.0
+    }
+}
+
 impl Factor for PositionFix {
     fn keys(&self) -> &[VarId] {
-        &self.keys[..self.key_count]
+        &self.keys[..if self.moves() { 2 } else { 1 }]
     }
     fn noise(&self) -> &NoiseModel {
         &self.noise
@@ -344,13 +349,13 @@ impl Factor for PositionFix {
         let p = values.pose(self.keys[0])?;
         let n = self.noise.dim();
         let mut r = p.trans_m - self.position_m;
-        if self.key_count == 2 {
+        if self.moves() {
             r += values.velocity(self.keys[1])? * self.dt_s;
         }
         if let Some(j) = jacobians {
             j[0].fill(0.0);
             j[0].view_mut((0, 3), (n, 3)).copy_from(&p.rot.view((0, 0), (n, 3)));
-            if self.key_count == 2 {
+            if self.moves() {
                 j[1].fill(0.0);
                 j[1].fill_diagonal(self.dt_s);
             }
