@@ -40,6 +40,7 @@
 //! and its separator's marginal factor.
 
 use std::collections::BTreeSet;
+use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
@@ -124,7 +125,9 @@ struct Conditional {
     r: DMatrix<f64>,
     s: DMatrix<f64>,
     d: DVector<f64>,
-    marginal: Hessian,
+    /// Shared with the pool of the elimination that made it and of later ones that take this
+    /// group as an orphan: a separator's marginal can be hundreds of rows.
+    marginal: Arc<Hessian>,
 }
 
 /// A factor in information form over the variables `keys`: `0.5 dx' h dx + g' dx`.
@@ -326,7 +329,7 @@ impl IncrementalSmoother {
         let n = affected.len();
         // The pool: factors whose variables are all affected (linearised now), and the
         // marginal factors of the orphan subtrees.
-        let mut pool: Vec<Hessian> = Vec::new();
+        let mut pool: Vec<Arc<Hessian>> = Vec::new();
         let mut taken = BTreeSet::new();
         let mut orphans = Vec::new();
         for &g in affected {
@@ -338,7 +341,7 @@ impl IncrementalSmoother {
                     let keys = graph.factors()[fi].keys();
                     if keys.iter().all(|k| self.local[self.group_of[k.0]] != usize::MAX) {
                         taken.insert(fi);
-                        pool.push(self.linearize(graph.factors()[fi].as_ref())?);
+                        pool.push(Arc::new(self.linearize(graph.factors()[fi].as_ref())?));
                     }
                 }
             }
@@ -354,7 +357,7 @@ impl IncrementalSmoother {
             let cond = self.cond[c]
                 .as_ref()
                 .ok_or_else(|| Error::LinearSolve(format!("group {c} has a parent but no conditional")))?;
-            pool.push(cond.marginal.clone());
+            pool.push(Arc::clone(&cond.marginal));
             self.parent[c] = None;
         }
         for &g in affected {
@@ -379,10 +382,10 @@ impl IncrementalSmoother {
         for (i, f) in pool.iter().enumerate() {
             waiting[first(f, self)].push(i);
         }
-        let mut pool: Vec<Option<Hessian>> = pool.into_iter().map(Some).collect();
+        let mut pool: Vec<Option<Arc<Hessian>>> = pool.into_iter().map(Some).collect();
         for r in 0..n {
             let g = affected[order[r]];
-            let gathered: Vec<Hessian> = std::mem::take(&mut waiting[r])
+            let gathered: Vec<Arc<Hessian>> = std::mem::take(&mut waiting[r])
                 .into_iter()
                 .filter_map(|i| pool[i].take())
                 .collect();
@@ -397,7 +400,7 @@ impl IncrementalSmoother {
             }
             if !cond.marginal.keys.is_empty() {
                 waiting[first(&cond.marginal, self)].push(pool.len());
-                pool.push(Some(cond.marginal.clone()));
+                pool.push(Some(Arc::clone(&cond.marginal)));
             }
             self.cond[g] = Some(cond);
         }
@@ -420,7 +423,7 @@ impl IncrementalSmoother {
 
     /// Places in `affected` in elimination order: nested dissection on the groups' graph,
     /// the newest state last.
-    fn elimination_order(&self, affected: &[usize], pool: &[Hessian]) -> Vec<usize> {
+    fn elimination_order(&self, affected: &[usize], pool: &[Arc<Hessian>]) -> Vec<usize> {
         let n = affected.len();
         let mut adjacency: Vec<BTreeSet<usize>> = vec![BTreeSet::new(); n];
         let mut locals = Vec::new();
@@ -467,17 +470,15 @@ impl IncrementalSmoother {
             a *= s;
             rw *= s;
         }
-        let at = a.transpose();
-        Ok(Hessian {
-            keys,
-            h: &at * &a,
-            g: at * rw,
-        })
+        let mut h = DMatrix::zeros(cols, cols);
+        let mut g = DVector::zeros(cols);
+        crate::linear::gram(&a, &rw, &mut Vec::new(), &mut h, &mut g);
+        Ok(Hessian { keys, h, g })
     }
 
     /// Eliminates the group `g` from the factors `gathered` (all the factors on it that
     /// remain).
-    fn eliminate_group(&self, g: usize, gathered: &[Hessian], rank: &[usize]) -> Result<Conditional> {
+    fn eliminate_group(&self, g: usize, gathered: &[Arc<Hessian>], rank: &[usize]) -> Result<Conditional> {
         let frontal = &self.groups[g];
         // Separator: the other variables of the gathered factors, in elimination order.
         let mut sep: Vec<usize> = gathered
@@ -504,25 +505,40 @@ impl IncrementalSmoother {
                 .binary_search_by_key(&k, |(v, _)| *v)
                 .map_or(0, |i| slot_of[i].1)
         };
-        let mut h = DMatrix::zeros(total, total);
-        let mut rhs = DVector::zeros(total);
+        // The system split at the frontal block: `[hgg hgs; hgs' hss]`, `[gg; gs]`. The
+        // separator's block is accumulated where the marginal will be made, so the largest
+        // matrix is neither copied nor multiplied into a new one.
+        let mut hgg = DMatrix::zeros(dg, dg);
+        let mut hgs = DMatrix::zeros(dg, ds);
+        let mut hss = DMatrix::zeros(ds, ds);
+        let mut gg = DVector::zeros(dg);
+        let mut gs = DVector::zeros(ds);
         for f in gathered {
             let mut fo = 0;
             for a in &f.keys {
                 let (sa, da) = (slot(*a), self.dims[*a]);
-                let mut seg = rhs.rows_mut(sa, da);
-                seg += f.g.rows(fo, da);
+                let src = &f.g.as_slice()[fo..fo + da];
+                let dst = if sa < dg {
+                    &mut gg.as_mut_slice()[sa..sa + da]
+                } else {
+                    &mut gs.as_mut_slice()[sa - dg..sa - dg + da]
+                };
+                dst.iter_mut().zip(src).for_each(|(x, v)| *x += v);
                 let mut fo2 = 0;
                 for b in &f.keys {
                     let (sb, db) = (slot(*b), self.dims[*b]);
-                    let mut block = h.view_mut((sa, sb), (da, db));
-                    block += f.h.view((fo, fo2), (da, db));
+                    match (sa < dg, sb < dg) {
+                        (true, true) => add_block(&mut hgg, (sa, sb), &f.h, (fo, fo2), (da, db)),
+                        (true, false) => add_block(&mut hgs, (sa, sb - dg), &f.h, (fo, fo2), (da, db)),
+                        (false, false) => add_block(&mut hss, (sa - dg, sb - dg), &f.h, (fo, fo2), (da, db)),
+                        // The transpose of a block of `hgs`.
+                        (false, true) => {}
+                    }
                     fo2 += db;
                 }
                 fo += da;
             }
         }
-        let hgg = h.view((0, 0), (dg, dg)).into_owned();
         let chol = match hgg.clone().cholesky() {
             Some(c) => c,
             None => {
@@ -569,19 +585,38 @@ impl IncrementalSmoother {
             }
         };
         let l = chol.l();
-        // L^-1 of the small frontal block once, then products (matrix kernels) for the
-        // separator's columns, which can be hundreds.
-        let linv = l
-            .solve_lower_triangular(&DMatrix::identity(dg, dg))
-            .ok_or_else(|| Error::LinearSolve(format!("group {g}: triangular solve")))?;
-        let s = &linv * h.view((0, dg), (dg, ds));
-        let d = -(&linv * rhs.rows(0, dg));
+        // S = L^-1 hgs and d = -L^-1 gg in place; the marginal is hss - S'S (lower triangle by
+        // rank-one updates with the rows of S, contiguous in S', then mirrored) and gs + S'd.
+        let mut s = hgs;
+        if !solve_lower_in_place(&l, s.as_mut_slice()) || !solve_lower_in_place(&l, gg.as_mut_slice()) {
+            return Err(Error::LinearSolve(format!("group {g}: triangular solve")));
+        }
+        let d = -gg;
         let st = s.transpose();
-        let marginal = Hessian {
-            h: h.view((dg, dg), (ds, ds)) - &st * &s,
-            g: rhs.rows(dg, ds) + st * &d,
+        let h = hss.as_mut_slice();
+        for k in 0..dg {
+            let row = st.column(k);
+            let row = row.as_slice();
+            for c in 0..ds {
+                let a = row[c];
+                if a != 0.0 {
+                    for (x, v) in h[c * ds + c..(c + 1) * ds].iter_mut().zip(&row[c..]) {
+                        *x -= a * v;
+                    }
+                }
+            }
+        }
+        for c in 0..ds {
+            for r in c + 1..ds {
+                h[r * ds + c] = h[c * ds + r];
+            }
+        }
+        gs.gemv(1.0, &st, &d, 1.0);
+        let marginal = Arc::new(Hessian {
+            h: hss,
+            g: gs,
             keys: sep.clone(),
-        };
+        });
         Ok(Conditional {
             sep,
             r: l.transpose(),
@@ -749,6 +784,49 @@ impl IncrementalSmoother {
         let ordering = Ordering::all(values);
         levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
     }
+}
+
+/// `dst[at..] += src[from..]` over a block of `size` (rows, columns); column-major slices.
+fn add_block(
+    dst: &mut DMatrix<f64>,
+    at: (usize, usize),
+    src: &DMatrix<f64>,
+    from: (usize, usize),
+    size: (usize, usize),
+) {
+    let (dn, sn) = (dst.nrows(), src.nrows());
+    let (d, s) = (dst.as_mut_slice(), src.as_slice());
+    for c in 0..size.1 {
+        let dc = (at.1 + c) * dn + at.0;
+        let sc = (from.1 + c) * sn + from.0;
+        for (x, v) in d[dc..dc + size.0].iter_mut().zip(&s[sc..sc + size.0]) {
+            *x += v;
+        }
+    }
+}
+
+/// Solves `l x = b` in place for every column of `b` (column-major, `l.nrows()` rows each),
+/// `l` lower triangular. False on a zero pivot.
+fn solve_lower_in_place(l: &DMatrix<f64>, b: &mut [f64]) -> bool {
+    let n = l.nrows();
+    let ls = l.as_slice();
+    if n == 0 {
+        return true;
+    }
+    for col in b.chunks_exact_mut(n) {
+        for i in 0..n {
+            let pivot = ls[i * n + i];
+            if pivot == 0.0 {
+                return false;
+            }
+            let xi = col[i] / pivot;
+            col[i] = xi;
+            for (x, v) in col[i + 1..].iter_mut().zip(&ls[i * n + i + 1..(i + 1) * n]) {
+                *x -= v * xi;
+            }
+        }
+    }
+    true
 }
 
 /// Re-dissect the newest states every this many states (see [`IncrementalSmoother::update`]).

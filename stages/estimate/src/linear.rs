@@ -446,7 +446,13 @@ pub fn linearize(
 /// `J^T J` (full, symmetric) and `J^T r` of an `m x n` Jacobian, as a sum of rank-one updates
 /// by the rows of `J` (contiguous after transposing into `jt`): independent multiply-adds that
 /// vectorise, where dot products of columns form one long dependency chain per entry.
-fn gram(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mut DMatrix<f64>, g: &mut DVector<f64>) {
+pub(crate) fn gram(
+    j: &DMatrix<f64>,
+    r: &DVector<f64>,
+    jt: &mut Vec<f64>,
+    jtj: &mut DMatrix<f64>,
+    g: &mut DVector<f64>,
+) {
     let (m, n) = j.shape();
     let js = j.as_slice();
     jt.clear();
