@@ -5,7 +5,7 @@ use std::time::Instant;
 use nalgebra::DVector;
 
 use crate::graph::FactorGraph;
-use crate::linear::{Factorization, HessianStructure, NormalEquations, Ordering, linearize, retract};
+use crate::linear::{Factorization, HessianStructure, NormalEquations, Ordering, linearize, linearize_into, retract};
 use crate::values::{Values, Variable};
 use crate::{Error, Result};
 
@@ -175,7 +175,7 @@ pub fn levenberg_marquardt_keep_hessian(
                         break 'outer;
                     }
                     let t = Instant::now();
-                    ne = linearize(graph, factors, values, &st)?;
+                    linearize_into(graph, factors, values, &st, &mut ne)?;
                     report.linearize_s += t.elapsed().as_secs_f64();
                     break;
                 }

@@ -354,9 +354,36 @@ pub fn linearize(
     values: &Values,
     structure: &HessianStructure,
 ) -> Result<NormalEquations> {
+    let mut ne = NormalEquations {
+        hessian: Vec::new(),
+        gradient: DVector::zeros(0),
+        error: 0.0,
+    };
+    linearize_into(graph, factors, values, structure, &mut ne)?;
+    Ok(ne)
+}
+
+/// [`linearize`] into `ne`, reusing its buffers (a Hessian of a few thousand states is
+/// megabytes, which fresh allocations would fault in page by page at every iteration).
+///
+/// # Errors
+/// A factor that cannot be evaluated; `ne` then holds a partial sum.
+pub fn linearize_into(
+    graph: &FactorGraph,
+    factors: &[usize],
+    values: &Values,
+    structure: &HessianStructure,
+    ne: &mut NormalEquations,
+) -> Result<()> {
     let ordering = &structure.ordering;
-    let mut hessian = vec![0.0; structure.nnz()];
-    let mut gradient = DVector::zeros(structure.dim);
+    ne.hessian.clear();
+    ne.hessian.resize(structure.nnz(), 0.0);
+    if ne.gradient.len() == structure.dim {
+        ne.gradient.fill(0.0);
+    } else {
+        ne.gradient = DVector::zeros(structure.dim);
+    }
+    let (hessian, gradient) = (&mut ne.hessian, &mut ne.gradient);
     let mut error = 0.0;
     // Scratch reused across factors: per-key Jacobians, the free keys' Jacobians side by
     // side, J^T J and J^T r.
@@ -436,11 +463,8 @@ pub fn linearize(
             }
         }
     }
-    Ok(NormalEquations {
-        hessian,
-        gradient,
-        error,
-    })
+    ne.error = error;
+    Ok(())
 }
 
 /// `J^T J` (full, symmetric) and `J^T r` of an `m x n` Jacobian, as a sum of rank-one updates
