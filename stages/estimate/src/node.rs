@@ -34,7 +34,8 @@ pub struct EstimateParams {
     /// Settings of the `incremental` smoother: relinearisation thresholds
     /// (`relinearize_rotation_rad` 0.001, `relinearize_translation_m` 0.1,
     /// `relinearize_velocity_mps` 0.1, `relinearize_bias` 0.1), `max_relinearized_per_update`
-    /// (32; 0: no cap) and `wildfire_threshold` (0.01).
+    /// (32; 0: no cap), `relinearize_budget_groups` (48; 0: no budget) and
+    /// `wildfire_threshold` (0.01).
     pub incremental: IncrementalParams,
     /// Window of the `fixed_lag` smoother, states (default 30).
     pub lag_states: usize,
