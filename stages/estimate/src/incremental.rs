@@ -730,7 +730,6 @@ impl IncrementalSmoother {
             .collect::<Result<_>>()?;
         by_excess.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
         let mut chosen = Vec::new();
-        let mut trial = Vec::new();
         for &(_, j) in &by_excess {
             if chosen.len() >= cap || (!chosen.is_empty() && affected.len() >= budget) {
                 break;
@@ -744,9 +743,7 @@ impl IncrementalSmoother {
             if affected.len() <= budget || chosen.is_empty() {
                 chosen.push(j);
             } else {
-                trial.clear();
-                trial.extend(affected.drain(before..));
-                for &g in &trial {
+                for g in affected.drain(before..) {
                     self.local[g] = usize::MAX;
                 }
             }
