@@ -38,6 +38,18 @@ pub struct Fixes {
 }
 
 impl Fixes {
+    /// The map fixes of a run that need not hold any (a fused estimate's run): `None` when the
+    /// recording has no `MapFix` topic, else as [`Fixes::from_recording`] on its only one.
+    ///
+    /// # Errors
+    /// Several `MapFix` topics (naming them), an undecodable message (topic and seq).
+    pub fn from_recording_if_any(rec: &Recording) -> Result<Option<Self>, TrajectoryError> {
+        if rec.topics().iter().all(|(_, ty)| ty != MapFix::ROS_NAME) {
+            return Ok(None);
+        }
+        Self::from_recording(rec, None).map(Some)
+    }
+
     /// Reads the `MapFix` messages on `topic` (default: the recording's only `MapFix` topic).
     ///
     /// # Errors
@@ -490,5 +502,32 @@ mod tests {
         assert_eq!((all.len(), from_lock.len()), (50, 35));
         assert!(summarise(&all).expect("distance").lgpr.cross_m > 0.5);
         assert!(summarise(&from_lock).expect("distance").lgpr.cross_m < 1e-9);
+    }
+
+    #[test]
+    fn a_run_without_map_fixes_has_none_and_a_bad_one_is_an_error() {
+        use gprflow_record::{Recorder, RunMetadata};
+        let dir = tempfile::tempdir().expect("tempdir");
+        let write = |name: &str, fix_topics: &[&str]| {
+            let path = dir.path().join(name);
+            let mut rec = Recorder::create(&path, &RunMetadata::this_build()).expect("create");
+            rec.add_topic("estimate/state", "gprflow_msgs/msg/StateEstimate")
+                .expect("topic");
+            for t in fix_topics {
+                let id = rec.add_topic(t, MapFix::ROS_NAME).expect("topic");
+                // not a MapFix
+                rec.write(id, 0, 0, &[1, 2, 3]).expect("write");
+            }
+            rec.finish().expect("finish");
+            Recording::open(&path).expect("open")
+        };
+        let none = write("none.mcap", &[]);
+        assert!(Fixes::from_recording_if_any(&none).expect("no fixes").is_none());
+        let bad = write("bad.mcap", &["track/map_fix"]);
+        let e = Fixes::from_recording_if_any(&bad).expect_err("undecodable").to_string();
+        assert!(e.contains("bad.mcap") && e.contains("/track/map_fix seq 0"), "{e}");
+        let two = write("two.mcap", &["a/map_fix", "b/map_fix"]);
+        let e = Fixes::from_recording_if_any(&two).expect_err("ambiguous").to_string();
+        assert!(e.contains("a/map_fix") && e.contains("b/map_fix"), "{e}");
     }
 }

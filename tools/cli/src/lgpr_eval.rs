@@ -90,9 +90,19 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
             Some(t) => {
                 let fused = Fixes::from_trajectory(&Trajectory::from_recording(&rec, t)?);
                 // over the span of the run's own map fixes, when it holds them
-                match Fixes::from_recording(&rec, None).ok().and_then(|f| f.first_lock_ns()) {
-                    Some(first) => fused.from_lock(first),
-                    None => fused,
+                let whole = |why: &str| {
+                    eprintln!("{}: {why}: {t} evaluated over the whole run", run.display());
+                };
+                match Fixes::from_recording_if_any(&rec)?.map(|f| f.first_lock_ns()) {
+                    Some(Some(first)) => fused.from_lock(first),
+                    Some(None) => {
+                        whole("its map fixes never lock");
+                        fused
+                    }
+                    None => {
+                        whole("no map fixes (no MapFix topic)");
+                        fused
+                    }
                 }
             }
             None => Fixes::from_recording(&rec, None)?,
