@@ -9,6 +9,8 @@
 //! `max_heading_deg`, and the two were driven at least `min_separation_s` apart (sequential
 //! submaps share their traces; registering them would only repeat the wheel odometry).
 
+use std::collections::HashMap;
+
 use gprflow_geometry::{Planar, Track};
 
 use gprflow_params::positive;
@@ -117,6 +119,76 @@ pub fn candidates(gates: &CandidateGates, query_stamp_ns: i64, query: &Planar, r
         .collect()
 }
 
+/// The placed references on a grid of cells as wide as the gates reach
+/// (`hypot(max_along_m, max_cross_m)`), so that a query looks at the references in the nine
+/// cells around it instead of at every reference. Every reference that passes the gates for a
+/// query lies within that reach of it, so [`ReferenceIndex::near`] holds all of them (and some
+/// that [`candidates`] then refuses).
+#[derive(Debug, Clone)]
+pub struct ReferenceIndex {
+    cell_m: f64,
+    cells: HashMap<(i64, i64), Vec<Placed>>,
+    len: usize,
+}
+
+impl ReferenceIndex {
+    /// An empty index for `gates` (checked: positive distances).
+    #[must_use]
+    pub fn new(gates: &CandidateGates) -> Self {
+        Self {
+            cell_m: gates.max_along_m.hypot(gates.max_cross_m),
+            cells: HashMap::new(),
+            len: 0,
+        }
+    }
+
+    fn cell(&self, pose: &Planar) -> (i64, i64) {
+        // Saturating casts: a pose far out of range lands in an edge cell, still found by a
+        // query there (and refused by the gates).
+        (
+            (pose.x_m / self.cell_m).floor() as i64,
+            (pose.y_m / self.cell_m).floor() as i64,
+        )
+    }
+
+    /// Adds a placed reference.
+    pub fn insert(&mut self, placed: Placed) {
+        let cell = self.cell(&placed.pose);
+        self.cells.entry(cell).or_default().push(placed);
+        self.len += 1;
+    }
+
+    /// Forgets every reference.
+    pub fn clear(&mut self) {
+        self.cells.clear();
+        self.len = 0;
+    }
+
+    /// References held.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// No reference held.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Appends to `out` the references in the nine cells around `query`.
+    pub fn near(&self, query: &Planar, out: &mut Vec<Placed>) {
+        let (cx, cy) = self.cell(query);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                if let Some(list) = self.cells.get(&(cx.saturating_add(dx), cy.saturating_add(dy))) {
+                    out.extend_from_slice(list);
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -144,6 +216,51 @@ mod tests {
         };
         let at = a.locate(&t, 10_000).expect("located");
         assert!((at.x_m - 10.0).abs() < 1e-12 && (at.y_m - 3.0).abs() < 1e-12, "{at:?}");
+    }
+
+    #[test]
+    fn the_index_finds_what_a_scan_of_every_reference_finds() {
+        // References scattered over 20 x 20 m with every heading, queries likewise: the
+        // candidates among the index's nine cells are those among all references.
+        let g = CandidateGates {
+            per_query: 5,
+            max_along_m: 1.0,
+            max_cross_m: 0.3,
+            max_heading_deg: 40.0,
+            ..CandidateGates::default()
+        };
+        let mut state = 7u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut index = ReferenceIndex::new(&g);
+        let mut all = Vec::new();
+        for i in 0..3000 {
+            let placed = Placed {
+                index: i,
+                stamp_ns: 0,
+                pose: p(20.0 * next() - 10.0, 20.0 * next() - 10.0, 360.0 * next()),
+            };
+            index.insert(placed);
+            all.push(placed);
+        }
+        assert_eq!(index.len(), 3000);
+        let (mut found_some, mut near) = (0, Vec::new());
+        for _ in 0..2000 {
+            let q = p(20.0 * next() - 10.0, 20.0 * next() - 10.0, 360.0 * next());
+            near.clear();
+            index.near(&q, &mut near);
+            assert!(near.len() < 200, "{} of 3000 looked at", near.len());
+            let scanned = candidates(&g, 100_000_000_000, &q, &all);
+            assert_eq!(candidates(&g, 100_000_000_000, &q, &near), scanned, "query {q:?}");
+            found_some += usize::from(!scanned.is_empty());
+        }
+        assert!(found_some > 500, "{found_some}");
+        index.clear();
+        assert!(index.is_empty());
     }
 
     #[test]

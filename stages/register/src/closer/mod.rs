@@ -24,7 +24,7 @@ use std::collections::VecDeque;
 use gprflow_geometry::{NonFinitePose, Planar, Track};
 
 use crate::Result;
-use crate::candidates::{Anchor, CandidateGates, Placed, candidates};
+use crate::candidates::{Anchor, CandidateGates, Placed, ReferenceIndex, candidates};
 use crate::engineered::SubmapView;
 use crate::learned::Features;
 use store::PixelSpill;
@@ -305,6 +305,12 @@ pub struct LoopCloser {
     truth: Track,
     pending: VecDeque<Keyed>,
     references: Vec<Keyed>,
+    /// The settled references: those the association frame has passed, whose place in it
+    /// no later pose changes (the frame's poses arrive in stamp order), for the candidate
+    /// search.
+    index: ReferenceIndex,
+    /// References before this one are settled (in `index`, or not placeable).
+    settled: usize,
     /// References before this index hold no pixels in memory.
     in_memory_from: usize,
     spill: PixelSpill,
@@ -318,6 +324,8 @@ impl LoopCloser {
     /// A loop closer matching with `matcher`.
     pub fn new(params: CloserParams, matcher: Box<dyn Matcher>) -> Self {
         Self {
+            index: ReferenceIndex::new(&params.candidates),
+            settled: 0,
             params,
             matcher,
             estimate: Track::new(),
@@ -382,7 +390,12 @@ impl LoopCloser {
     /// # Errors
     /// A pose that is not finite.
     pub fn add_estimate(&mut self, stamp_ns: i64, pose: Planar) -> std::result::Result<(), NonFinitePose> {
-        self.estimate.insert(stamp_ns, pose)
+        let appended = self.estimate.last_stamp_ns().is_none_or(|last| stamp_ns > last);
+        self.estimate.insert(stamp_ns, pose)?;
+        if !appended && self.params.association == Association::Estimate {
+            self.unsettle();
+        }
+        Ok(())
     }
 
     /// Adds a ground-truth pose.
@@ -390,7 +403,42 @@ impl LoopCloser {
     /// # Errors
     /// A pose that is not finite.
     pub fn add_truth(&mut self, stamp_ns: i64, pose: Planar) -> std::result::Result<(), NonFinitePose> {
-        self.truth.insert(stamp_ns, pose)
+        let appended = self.truth.last_stamp_ns().is_none_or(|last| stamp_ns > last);
+        self.truth.insert(stamp_ns, pose)?;
+        if !appended && self.params.association == Association::Truth {
+            self.unsettle();
+        }
+        Ok(())
+    }
+
+    /// A pose arrived out of stamp order and may move settled references: place them all
+    /// again.
+    fn unsettle(&mut self) {
+        self.index.clear();
+        self.settled = 0;
+    }
+
+    /// Settles the references the association frame has passed since the last call.
+    fn settle_references(&mut self) {
+        let gap = self.max_gap_ns();
+        let track = match self.params.association {
+            Association::Estimate => &self.estimate,
+            Association::Truth => &self.truth,
+        };
+        let Some(last) = track.last_stamp_ns() else { return };
+        while let Some(r) = self.references.get(self.settled) {
+            if r.anchor.stamp_ns > last {
+                break;
+            }
+            if let Some(pose) = r.anchor.locate(track, gap) {
+                self.index.insert(Placed {
+                    index: self.settled,
+                    stamp_ns: r.anchor.stamp_ns,
+                    pose,
+                });
+            }
+            self.settled += 1;
+        }
     }
 
     /// Queues a submap; [`LoopCloser::poll`] takes it once the association frame reaches it.
@@ -446,18 +494,18 @@ impl LoopCloser {
             (p.x_m - q.anchor.odom.x_m).hypot(p.y_m - q.anchor.odom.y_m) >= self.params.query_spacing_m
         });
         if spaced {
-            let placed: Vec<Placed> = self
-                .references
-                .iter()
-                .enumerate()
-                .filter_map(|(index, r)| {
-                    Some(Placed {
-                        index,
-                        stamp_ns: r.anchor.stamp_ns,
-                        pose: r.anchor.locate(self.association(), gap)?,
-                    })
+            // The settled references near the query, and the newest ones placed afresh.
+            self.settle_references();
+            let mut placed = Vec::new();
+            self.index.near(&q_pose, &mut placed);
+            let newest = self.references.iter().enumerate().skip(self.settled);
+            placed.extend(newest.filter_map(|(index, r)| {
+                Some(Placed {
+                    index,
+                    stamp_ns: r.anchor.stamp_ns,
+                    pose: r.anchor.locate(self.association(), gap)?,
                 })
-                .collect();
+            }));
             let found = candidates(&self.params.candidates, q.anchor.stamp_ns, &q_pose, &placed);
             if !found.is_empty() {
                 self.counts.queries += 1;
@@ -642,6 +690,56 @@ mod tests {
             end_stamp_ns: 0,
         })
         .expect("a good submap")
+    }
+
+    #[test]
+    fn references_settle_once_the_frame_passes_them_and_a_late_pose_places_them_again() {
+        let params = CloserParams {
+            association: Association::Estimate,
+            candidates: CandidateGates::default(),
+            sigma_m: None,
+            reference_spacing_m: 0.3,
+            query_spacing_m: 0.5,
+            max_track_gap_s: 1.0,
+            stamps: Stamps::Anchors,
+            references_in_memory: 256,
+        };
+        let engineered = Engineered {
+            params: crate::engineered::EngineeredParams::default(),
+            min_score: 0.3,
+        };
+        let mut closer = LoopCloser::new(params, Box::new(engineered));
+        let at = |x_m: f64| Planar {
+            x_m,
+            y_m: 0.0,
+            yaw_rad: 0.0,
+        };
+        // anchors at 1 000 and 3 000 ns, where the frame will be at x 1 and 3 m
+        let anchored = |stamp_ns: i64| {
+            let mut r = timed(10, stamp_ns, 10, false);
+            (r.anchor.stamp_ns, r.anchor.start_stamp_ns) = (stamp_ns, stamp_ns);
+            r
+        };
+        closer.references = vec![anchored(1_000), anchored(3_000)];
+        closer.add_estimate(0, at(0.0)).expect("finite");
+        closer.add_estimate(2_000, at(2.0)).expect("finite");
+        closer.settle_references();
+        // the frame has passed the first anchor only
+        assert_eq!((closer.settled, closer.index.len()), (1, 1));
+        let mut near = Vec::new();
+        closer.index.near(&at(1.0), &mut near);
+        assert!((near[0].pose.x_m - 1.0).abs() < 1e-9, "{near:?}");
+        closer.add_estimate(4_000, at(4.0)).expect("finite");
+        closer.settle_references();
+        assert_eq!((closer.settled, closer.index.len()), (2, 2));
+        // a pose between two others moves the first anchor: everything is placed again
+        closer.add_estimate(1_000, at(1.5)).expect("finite");
+        assert_eq!((closer.settled, closer.index.len()), (0, 0));
+        closer.settle_references();
+        near.clear();
+        closer.index.near(&at(1.5), &mut near);
+        let first = near.iter().find(|p| p.index == 0).expect("placed");
+        assert!((first.pose.x_m - 1.5).abs() < 1e-9, "{near:?}");
     }
 
     #[test]
