@@ -108,6 +108,8 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     let f = &eval(&["--topic", "/estimate/state"]);
     let (total, gps_total) = (cm(&f["lgpr"]["total_m"]), cm(&f["gps"]["total_m"]));
     let heuristic = cm(&r["lgpr"]["total_m"]);
+    // every pose of an estimate counts as a fix: no lock share is made up for it
+    assert!(f["locked_pct"].is_null(), "{f}");
     assert!(
         total < heuristic && gps_total > 5.0 * total,
         "fused RMS {total:.1} cm, the fixes alone {heuristic:.1} cm, GPS/INS {gps_total:.1} cm: {f}"

@@ -151,6 +151,12 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
             summary,
         });
     }
+    if args.topic.is_some() {
+        // every pose of a fused estimate counts as a fix: its lock share says nothing
+        for r in &mut rows {
+            r.summary.locked_pct = f64::NAN;
+        }
+    }
     let mut out = std::io::stdout().lock();
     match args.format {
         ReportFormat::Json => {
@@ -188,7 +194,11 @@ pub fn lgpr_eval_command(args: &LgprEvalArgs) -> Result<ExitCode> {
                     format!("{:.0}", s.mean_speed_mps * 3.6),
                     s.fixes.to_string(),
                     format!("{:.0}", s.distance_m),
-                    format!("{:.2}", s.locked_pct),
+                    if s.locked_pct.is_nan() {
+                        "-".into()
+                    } else {
+                        format!("{:.2}", s.locked_pct)
+                    },
                     cm(s.lgpr.cross_m),
                     cm(s.lgpr.along_m),
                     cm(s.lgpr.total_m),

@@ -336,7 +336,8 @@ enum Command {
         #[arg(long, default_value_t = 1.3)]
         max_offset_m: f64,
         /// Evaluate this pose topic (a fused estimate, e.g. /estimate/state) instead of the
-        /// map fixes, from the run's first locked map fix on (as the fixes are).
+        /// map fixes, from the run's first locked map fix on (as the fixes are); its lock %
+        /// is left empty ("-", JSON null): every pose counts as a fix.
         #[arg(long)]
         topic: Option<String>,
         /// Output format.
