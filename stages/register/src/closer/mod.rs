@@ -692,8 +692,8 @@ mod tests {
         .expect("a good submap")
     }
 
-    #[test]
-    fn references_settle_once_the_frame_passes_them_and_a_late_pose_places_them_again() {
+    /// A loop closer with the engineered method, estimate association and default gates.
+    fn engineered_closer(references_in_memory: usize) -> LoopCloser {
         let params = CloserParams {
             association: Association::Estimate,
             candidates: CandidateGates::default(),
@@ -702,13 +702,18 @@ mod tests {
             query_spacing_m: 0.5,
             max_track_gap_s: 1.0,
             stamps: Stamps::Anchors,
-            references_in_memory: 256,
+            references_in_memory,
         };
         let engineered = Engineered {
             params: crate::engineered::EngineeredParams::default(),
             min_score: 0.3,
         };
-        let mut closer = LoopCloser::new(params, Box::new(engineered));
+        LoopCloser::new(params, Box::new(engineered))
+    }
+
+    #[test]
+    fn references_settle_once_the_frame_passes_them_and_a_late_pose_places_them_again() {
+        let mut closer = engineered_closer(256);
         let at = |x_m: f64| Planar {
             x_m,
             y_m: 0.0,
@@ -775,21 +780,7 @@ mod tests {
                 (cell as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (row as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
             ((h >> 40) as f32 / (1u64 << 24) as f32) - 0.5
         };
-        let params = CloserParams {
-            association: Association::Estimate,
-            candidates: CandidateGates::default(),
-            sigma_m: None,
-            reference_spacing_m: 0.3,
-            query_spacing_m: 0.5,
-            max_track_gap_s: 1.0,
-            stamps: Stamps::Anchors,
-            references_in_memory,
-        };
-        let engineered = Engineered {
-            params: crate::engineered::EngineeredParams::default(),
-            min_score: 0.3,
-        };
-        let mut closer = LoopCloser::new(params, Box::new(engineered));
+        let mut closer = engineered_closer(references_in_memory);
         let pose = |x_m: f64| Planar {
             x_m,
             y_m: 0.0,
