@@ -128,7 +128,6 @@ pub fn candidates(gates: &CandidateGates, query_stamp_ns: i64, query: &Planar, r
 pub struct ReferenceIndex {
     cell_m: f64,
     cells: HashMap<(i64, i64), Vec<Placed>>,
-    len: usize,
 }
 
 impl ReferenceIndex {
@@ -138,7 +137,6 @@ impl ReferenceIndex {
         Self {
             cell_m: gates.max_along_m.hypot(gates.max_cross_m),
             cells: HashMap::new(),
-            len: 0,
         }
     }
 
@@ -155,25 +153,23 @@ impl ReferenceIndex {
     pub fn insert(&mut self, placed: Placed) {
         let cell = self.cell(&placed.pose);
         self.cells.entry(cell).or_default().push(placed);
-        self.len += 1;
     }
 
     /// Forgets every reference.
     pub fn clear(&mut self) {
         self.cells.clear();
-        self.len = 0;
     }
 
     /// References held.
     #[must_use]
     pub fn len(&self) -> usize {
-        self.len
+        self.cells.values().map(Vec::len).sum()
     }
 
     /// No reference held.
     #[must_use]
     pub fn is_empty(&self) -> bool {
-        self.len == 0
+        self.cells.is_empty()
     }
 
     /// Appends to `out` the references in the nine cells around `query`.

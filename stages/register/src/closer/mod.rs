@@ -390,12 +390,7 @@ impl LoopCloser {
     /// # Errors
     /// A pose that is not finite.
     pub fn add_estimate(&mut self, stamp_ns: i64, pose: Planar) -> std::result::Result<(), NonFinitePose> {
-        let appended = self.estimate.last_stamp_ns().is_none_or(|last| stamp_ns > last);
-        self.estimate.insert(stamp_ns, pose)?;
-        if !appended && self.params.association == Association::Estimate {
-            self.unsettle();
-        }
-        Ok(())
+        self.add_pose(Association::Estimate, stamp_ns, pose)
     }
 
     /// Adds a ground-truth pose.
@@ -403,19 +398,23 @@ impl LoopCloser {
     /// # Errors
     /// A pose that is not finite.
     pub fn add_truth(&mut self, stamp_ns: i64, pose: Planar) -> std::result::Result<(), NonFinitePose> {
-        let appended = self.truth.last_stamp_ns().is_none_or(|last| stamp_ns > last);
-        self.truth.insert(stamp_ns, pose)?;
-        if !appended && self.params.association == Association::Truth {
-            self.unsettle();
-        }
-        Ok(())
+        self.add_pose(Association::Truth, stamp_ns, pose)
     }
 
-    /// A pose arrived out of stamp order and may move settled references: place them all
-    /// again.
-    fn unsettle(&mut self) {
-        self.index.clear();
-        self.settled = 0;
+    /// Adds a pose to the estimate or the truth. One that arrives out of stamp order in the
+    /// association frame may move settled references: they are all placed again.
+    fn add_pose(&mut self, to: Association, stamp_ns: i64, pose: Planar) -> std::result::Result<(), NonFinitePose> {
+        let track = match to {
+            Association::Estimate => &mut self.estimate,
+            Association::Truth => &mut self.truth,
+        };
+        let appended = track.last_stamp_ns().is_none_or(|last| stamp_ns > last);
+        track.insert(stamp_ns, pose)?;
+        if !appended && self.params.association == to {
+            self.index.clear();
+            self.settled = 0;
+        }
+        Ok(())
     }
 
     /// Settles the references the association frame has passed since the last call.
