@@ -35,6 +35,7 @@ pub mod incremental;
 pub mod lie;
 pub mod linear;
 pub mod lines;
+pub mod marginal;
 #[cfg(feature = "node")]
 pub mod node;
 pub mod noise;
