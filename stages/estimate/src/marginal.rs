@@ -68,19 +68,36 @@ impl MarginalPrior {
         self.sqrt_information.transpose() * &self.sqrt_information
     }
 
-    /// The same information about the variables' values in `values` (the gradient at them zero).
+    /// The same information about the variables' values in `values`, with its gradient there
+    /// `-balance` (as far as the information reaches): with `balance` the gradient of the other
+    /// factors on these variables, `values` stays a stationary point of the prior and them.
     ///
     /// # Errors
-    /// A variable missing from `values`.
-    pub fn recentred(&self, values: &Values) -> Result<Self> {
+    /// A variable missing from `values`, or a `balance` of the wrong length.
+    pub fn recentred(&self, values: &Values, balance: &DVector<f64>) -> Result<Self> {
+        if balance.len() != self.sqrt_information.ncols() {
+            return Err(Error::LinearSolve(format!(
+                "re-centring a prior on {} coordinates with a gradient of {}",
+                self.sqrt_information.ncols(),
+                balance.len()
+            )));
+        }
         let at = self
             .keys
             .iter()
             .map(|k| values.get(*k).copied())
             .collect::<Result<_>>()?;
+        // The rows of A are orthogonal (scaled eigenvectors), so A^T b = -balance on their span
+        // takes b_i = -(a_i . balance) / |a_i|^2.
+        let offset = DVector::from_iterator(
+            self.sqrt_information.nrows(),
+            self.sqrt_information
+                .row_iter()
+                .map(|a| -a.transpose().dot(balance) / a.norm_squared()),
+        );
         Ok(Self {
             at,
-            offset: DVector::zeros(self.offset.len()),
+            offset,
             ..self.clone()
         })
     }
@@ -114,31 +131,26 @@ impl Factor for MarginalPrior {
     }
 }
 
-/// Marginalises the variables `marginalised` out of `factors` linearised at `values` (whitened,
-/// robust-reweighted), with `kept` the other variables left free; every other variable a factor
-/// touches is held at its value. The Schur complement becomes a [`MarginalPrior`] on `kept`
-/// (`None` when it carries no information).
+/// Dense normal equations `(H, g)` of `factors` at `values` (whitened, robust-reweighted) over
+/// the variables `vars` in that order; every other variable a factor touches is held at its
+/// value.
 ///
 /// # Errors
-/// A factor that cannot be evaluated, a variable in both lists, or marginalised variables that
-/// the factors do not determine (their information singular).
-pub fn marginalise(
+/// A factor that cannot be evaluated, or a variable listed twice.
+pub fn normal_equations(
     factors: &[&dyn Factor],
     values: &Values,
-    marginalised: &[VarId],
-    kept: &[VarId],
-) -> Result<Option<MarginalPrior>> {
-    // Slots: the marginalised variables first, then the kept ones.
+    vars: &[VarId],
+) -> Result<(DMatrix<f64>, DVector<f64>)> {
     let mut slot: std::collections::BTreeMap<VarId, (usize, usize)> = std::collections::BTreeMap::new();
     let mut n = 0;
-    for id in marginalised.iter().chain(kept) {
+    for id in vars {
         let d = values.get(*id)?.dim();
         if slot.insert(*id, (n, d)).is_some() {
             return Err(Error::LinearSolve(format!("variable {} listed twice", id.0)));
         }
         n += d;
     }
-    let nm: usize = marginalised.iter().map(|id| slot[id].1).sum();
     let mut h = DMatrix::zeros(n, n);
     let mut g = DVector::zeros(n);
     let (mut jt, mut hf, mut gf) = (Vec::new(), DMatrix::zeros(0, 0), DVector::zeros(0));
@@ -193,6 +205,30 @@ pub fn marginalise(
             ca += da;
         }
     }
+    Ok((h, g))
+}
+
+/// Marginalises the variables `marginalised` out of `factors` linearised at `values` (whitened,
+/// robust-reweighted), with `kept` the other variables left free; every other variable a factor
+/// touches is held at its value. The Schur complement becomes a [`MarginalPrior`] on `kept`
+/// (`None` when it carries no information).
+///
+/// # Errors
+/// A factor that cannot be evaluated, a variable in both lists, or marginalised variables that
+/// the factors do not determine (their information singular).
+pub fn marginalise(
+    factors: &[&dyn Factor],
+    values: &Values,
+    marginalised: &[VarId],
+    kept: &[VarId],
+) -> Result<Option<MarginalPrior>> {
+    let vars: Vec<VarId> = marginalised.iter().chain(kept).copied().collect();
+    let (h, g) = normal_equations(factors, values, &vars)?;
+    let n = h.nrows();
+    let nm: usize = marginalised
+        .iter()
+        .map(|id| values.get(*id).map(Variable::dim))
+        .sum::<Result<usize>>()?;
     let nk = n - nm;
     if nk == 0 {
         return Ok(None);
@@ -338,10 +374,21 @@ mod tests {
                 );
             }
         }
-        // Re-centred, the prior pulls towards the new point with the same information.
-        let moved = prior.recentred(&values).expect("recentre");
+        // Re-centred on the same point against the rest of the graph's gradient there, the
+        // prior's own gradient cancels it, with the same information.
+        let rest: Vec<&dyn Factor> = reduced.factors()[..reduced.len() - 1]
+            .iter()
+            .map(|f| f.as_ref())
+            .collect();
+        let (_, g_rest) = normal_equations(&rest, &values, &ids[1..3]).expect("normal equations");
+        let moved = prior.recentred(&values, &g_rest).expect("recentre");
         assert!((moved.information() - prior.information()).norm() < 1e-12 * prior.information().norm());
-        assert!(moved.evaluate(&values, None).expect("eval").norm() < 1e-12);
+        let (_, g_prior) = normal_equations(&[&moved as &dyn Factor], &values, &ids[1..3]).expect("normal equations");
+        assert!(
+            (&g_prior + &g_rest).norm() < 1e-9 * g_rest.norm(),
+            "{g_prior} vs {g_rest}"
+        );
+        assert!(prior.recentred(&values, &DVector::zeros(3)).is_err());
     }
 
     #[test]

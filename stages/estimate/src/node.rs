@@ -39,6 +39,11 @@ pub struct EstimateParams {
     pub incremental: IncrementalParams,
     /// Window of the `fixed_lag` smoother, states (default 30).
     pub lag_states: usize,
+    /// `fixed_lag` smoother: marginalise the states that leave the window into a prior on the
+    /// window (Schur complement, first-estimate Jacobians) instead of holding them at their
+    /// estimate, so that the window's covariance is the marginal one (default false). Loop
+    /// closures to states already marginalised still hold those at their estimate.
+    pub marginalise: bool,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
     /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 2.28e-3).
@@ -101,6 +106,7 @@ impl Default for EstimateParams {
             smoother: o.smoother.method,
             incremental: o.smoother.incremental,
             lag_states: o.smoother.lag_states,
+            marginalise: o.smoother.marginalise,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
             acc_bias_random_walk: o.imu.acc_bias_random_walk,
@@ -133,6 +139,7 @@ impl EstimateParams {
                 incremental: self.incremental,
                 lag_states: self.lag_states,
                 background: self.background_solves,
+                marginalise: self.marginalise,
                 ..SmootherParams::default()
             },
             imu: ImuParams {

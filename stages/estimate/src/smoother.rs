@@ -25,15 +25,17 @@
 //! the covariance given the older states, smaller than the true marginal.
 
 use std::collections::BTreeSet;
-use std::sync::mpsc;
+use std::sync::{Arc, mpsc};
 use std::time::Instant;
 
 use nalgebra::DMatrix;
 
 use crate::batch::{LmParams, LmReport, levenberg_marquardt, levenberg_marquardt_keep_hessian};
+use crate::factor::Factor;
 use crate::graph::FactorGraph;
 use crate::incremental::{IncrementalParams, IncrementalReport, IncrementalSmoother};
 use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
+use crate::marginal::{MarginalPrior, marginalise, normal_equations};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
@@ -72,6 +74,11 @@ pub struct SmootherParams {
     pub full_solve: LmParams,
     /// Compute the newest state's covariance after each update.
     pub newest_covariance: bool,
+    /// Marginalise the states that leave the window into a prior on the ones they leave
+    /// behind (see [`crate::marginal`]), instead of holding them at their estimate: the
+    /// window's covariance is then the marginal one. Factors that join the window to a
+    /// marginalised state later (loop closures) still hold that state at its estimate.
+    pub marginalise: bool,
 }
 
 impl Default for SmootherParams {
@@ -87,6 +94,7 @@ impl Default for SmootherParams {
                 ..LmParams::default()
             },
             newest_covariance: true,
+            marginalise: false,
         }
     }
 }
@@ -144,6 +152,12 @@ pub struct FixedLagSmoother {
     structure: Option<HessianStructure>,
     running: Option<Running>,
     newest_cov: Option<DMatrix<f64>>,
+    /// States `0..marginalised` are marginalised (with [`SmootherParams::marginalise`]).
+    marginalised: usize,
+    /// Per factor: folded into a prior, no longer solved with the window.
+    consumed: Vec<bool>,
+    /// The priors of the marginalised states.
+    priors: Vec<Arc<MarginalPrior>>,
 }
 
 impl FixedLagSmoother {
@@ -160,6 +174,9 @@ impl FixedLagSmoother {
             structure: None,
             running: None,
             newest_cov: None,
+            marginalised: 0,
+            consumed: Vec::new(),
+            priors: Vec::new(),
         }
     }
 
@@ -221,8 +238,11 @@ impl FixedLagSmoother {
     /// # Errors
     /// A factor that cannot be evaluated, or a failed full solve.
     pub fn update(&mut self, graph: &FactorGraph, values: &mut Values, new_state: &[VarId]) -> Result<UpdateReport> {
-        let merged = self.poll(values, false)?;
+        let merged = self.poll(graph, values, false)?;
         self.register(graph, values, new_state)?;
+        if self.params.marginalise {
+            self.marginalise_old(graph, values)?;
+        }
         let window = self.solve_window(graph, values)?;
         let mut started = false;
         if self.full_solve_wanted && self.running.is_none() {
@@ -232,7 +252,7 @@ impl FixedLagSmoother {
         }
         let merged = match merged {
             Some(m) => Some(m),
-            None if !self.params.background => self.poll(values, true)?,
+            None if !self.params.background => self.poll(graph, values, true)?,
             None => None,
         };
         Ok(UpdateReport {
@@ -243,12 +263,93 @@ impl FixedLagSmoother {
         })
     }
 
+    /// Marginalises the states that have left the window, oldest first: each one's factors
+    /// not yet folded into a prior (and the priors on it) become one prior on the later states
+    /// they reach; older states and variables of no state are held at their estimate.
+    fn marginalise_old(&mut self, graph: &FactorGraph, values: &Values) -> Result<()> {
+        self.consumed.resize(graph.len(), false);
+        while self.marginalised < self.window_start() {
+            let s = self.marginalised;
+            self.marginalised += 1;
+            let gone = &self.states[s];
+            let mut taken: Vec<usize> = gone
+                .iter()
+                .flat_map(|v| self.factors_of[v.0].iter().copied())
+                .filter(|f| !self.consumed[*f])
+                .collect();
+            taken.sort_unstable();
+            taken.dedup();
+            let (on_it, others): (Vec<_>, Vec<_>) = self
+                .priors
+                .drain(..)
+                .partition(|p| p.variables().iter().any(|k| gone.contains(k)));
+            self.priors = others;
+            let later = |k: &VarId| !gone.contains(k) && self.state_of[k.0].is_some_and(|t| t > s);
+            let mut kept: Vec<VarId> = taken
+                .iter()
+                .flat_map(|f| graph.factors()[*f].keys().iter().copied())
+                .chain(on_it.iter().flat_map(|p| p.variables().iter().copied()))
+                .filter(|k| later(k))
+                .collect();
+            kept.sort_unstable_by_key(|k| k.0);
+            kept.dedup();
+            let mut list: Vec<&dyn Factor> = taken.iter().map(|f| graph.factors()[*f].as_ref()).collect();
+            list.extend(on_it.iter().map(|p| p.as_ref() as &dyn Factor));
+            match marginalise(&list, values, gone, &kept) {
+                Ok(prior) => {
+                    for f in taken {
+                        self.consumed[f] = true;
+                    }
+                    self.priors.extend(prior.map(Arc::new));
+                }
+                Err(e) => {
+                    // Held at its estimate instead, as without marginalisation.
+                    tracing::warn!(state = s, "cannot marginalise a state leaving the window: {e}");
+                    self.priors.extend(on_it);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Re-centres the priors on `values` after a whole-graph solve moved them, balanced against
+    /// the gradient of the window's other factors so that the solve's values stay a stationary
+    /// point of the window.
+    fn recentre_priors(&mut self, graph: &FactorGraph, values: &Values) -> Result<()> {
+        let mut recentred = Vec::with_capacity(self.priors.len());
+        for p in &self.priors {
+            let mut on: Vec<usize> = p
+                .variables()
+                .iter()
+                .flat_map(|v| self.factors_of[v.0].iter().copied())
+                .filter(|f| !self.consumed.get(*f).copied().unwrap_or(false))
+                .collect();
+            on.sort_unstable();
+            on.dedup();
+            let mut list: Vec<&dyn Factor> = on.iter().map(|f| graph.factors()[*f].as_ref()).collect();
+            for q in &self.priors {
+                if !Arc::ptr_eq(p, q) && q.variables().iter().any(|k| p.variables().contains(k)) {
+                    list.push(q.as_ref());
+                }
+            }
+            let (_, balance) = normal_equations(&list, values, p.variables())?;
+            recentred.push(Arc::new(p.recentred(values, &balance)?));
+        }
+        self.priors = recentred;
+        Ok(())
+    }
+
     fn solve_window(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
         let start = self.window_start();
         let mut free: Vec<VarId> = self.states[start..].iter().flatten().copied().collect();
         let mut factors = BTreeSet::new();
         for v in &free {
-            factors.extend(self.factors_of[v.0].iter().copied());
+            factors.extend(
+                self.factors_of[v.0]
+                    .iter()
+                    .copied()
+                    .filter(|f| !self.consumed.get(*f).copied().unwrap_or(false)),
+            );
         }
         let factors: Vec<usize> = factors.into_iter().collect();
         // Variables of no state (map lines) are solved with the window when it observes them.
@@ -266,8 +367,20 @@ impl FixedLagSmoother {
             max_iterations: self.params.iterations_per_update,
             ..LmParams::default()
         };
-        let (report, ne) =
-            levenberg_marquardt_keep_hessian(graph, &factors, values, &ordering, &lm, &mut self.structure)?;
+        let (report, ne) = if self.priors.is_empty() {
+            levenberg_marquardt_keep_hessian(graph, &factors, values, &ordering, &lm, &mut self.structure)?
+        } else {
+            // The window's factors and the priors, as one small graph (shared factors).
+            let mut local = FactorGraph::new();
+            for &f in &factors {
+                local.add_shared(graph.factors()[f].clone());
+            }
+            for p in &self.priors {
+                local.add_shared(p.clone());
+            }
+            let all: Vec<usize> = (0..local.len()).collect();
+            levenberg_marquardt_keep_hessian(&local, &all, values, &ordering, &lm, &mut self.structure)?
+        };
         self.newest_cov = None;
         // From the solver's last linearisation (at most one accepted step from the solution).
         if self.params.newest_covariance
@@ -319,7 +432,7 @@ impl FixedLagSmoother {
     }
 
     /// Merges a finished full solve; with `wait`, waits for a running one.
-    fn poll(&mut self, values: &mut Values, wait: bool) -> Result<Option<FullSolveReport>> {
+    fn poll(&mut self, graph: &FactorGraph, values: &mut Values, wait: bool) -> Result<Option<FullSolveReport>> {
         let Some(run) = &self.running else { return Ok(None) };
         let got = if wait {
             run.rx
@@ -361,6 +474,9 @@ impl FixedLagSmoother {
                 }
             }
         }
+        if !self.priors.is_empty() {
+            self.recentre_priors(graph, values)?;
+        }
         Ok(Some(FullSolveReport {
             states: run.states,
             lm,
@@ -374,7 +490,7 @@ impl FixedLagSmoother {
     /// # Errors
     /// A factor that cannot be evaluated.
     pub fn finish(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
-        self.poll(values, true)?;
+        self.poll(graph, values, true)?;
         let all: Vec<usize> = (0..graph.len()).collect();
         let ordering = Ordering::all(values);
         levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
@@ -447,5 +563,93 @@ impl Smoother {
             Self::Incremental(s) => s.finish(graph, values),
             Self::FixedLag(s) => s.finish(graph, values),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::{BiasRandomWalk, VectorPrior};
+    use crate::noise::NoiseModel;
+    use crate::values::ImuBias;
+    use nalgebra::Vector6;
+
+    /// A linear chain: one IMU bias per state, a random walk between consecutive ones and a
+    /// noisy measurement of every third. Returns the newest state's covariance after each
+    /// update, and the batch marginal covariance of the same graph.
+    fn linear_chain(marginalise: bool, lag_states: usize) -> Vec<(DMatrix<f64>, DMatrix<f64>, f64)> {
+        let params = SmootherParams {
+            method: SmootherMethod::FixedLag,
+            lag_states,
+            background: false,
+            marginalise,
+            ..SmootherParams::default()
+        };
+        let mut smoother = FixedLagSmoother::new(params);
+        let mut graph = FactorGraph::new();
+        let mut values = Values::new();
+        let walk = NoiseModel::diagonal(&[0.05, 0.05, 0.05, 0.01, 0.01, 0.01]).expect("noise");
+        let seen = NoiseModel::diagonal(&[0.3, 0.2, 0.3, 0.05, 0.05, 0.1]).expect("noise");
+        let mut out = Vec::new();
+        let mut ids: Vec<VarId> = Vec::new();
+        for k in 0..40 {
+            let id = values.push(Variable::Bias(ImuBias::default()));
+            if k == 0 {
+                let first = NoiseModel::isotropic(6, 0.1).expect("noise");
+                graph.add(VectorPrior::bias(id, ImuBias::default(), first).expect("f"));
+            } else {
+                graph.add(BiasRandomWalk::new(ids[k - 1], id, walk.clone()).expect("f"));
+            }
+            if k % 3 == 1 {
+                let x = f64::from(k as u32);
+                let z = Vector6::new((0.3 * x).sin(), 0.1 * x, -0.2, 0.01 * x, (0.2 * x).cos() * 0.01, 0.0);
+                graph.add(VectorPrior::bias(id, ImuBias::from_vector(&z), seen.clone()).expect("f"));
+            }
+            ids.push(id);
+            smoother.update(&graph, &mut values, &[id]).expect("update");
+            let ours = smoother.newest_covariance().expect("covariance").clone();
+            // The batch marginal and estimate of the graph so far.
+            let mut batch_values = values.clone();
+            let all: Vec<usize> = (0..graph.len()).collect();
+            let ordering = Ordering::all(&batch_values);
+            let mut st = None;
+            levenberg_marquardt(
+                &graph,
+                &all,
+                &mut batch_values,
+                &ordering,
+                &LmParams::default(),
+                &mut st,
+            )
+            .expect("batch");
+            let st = st.expect("structure");
+            let ne = crate::linear::linearize(&graph, &all, &batch_values, &st).expect("linearise");
+            let f = Factorization::new(&st, &ne.hessian, 0.0).expect("factor");
+            let batch = marginal_covariance(&f, st.ordering(), id).expect("marginal");
+            let moved = (values.bias(id).expect("b").vector() - batch_values.bias(id).expect("b").vector()).norm();
+            out.push((ours, batch, moved));
+        }
+        out
+    }
+
+    #[test]
+    fn marginalising_a_linear_chain_gives_the_batch_marginal_and_estimate() {
+        for lag in [1, 4, 10] {
+            for (k, (ours, batch, moved)) in linear_chain(true, lag).iter().enumerate() {
+                assert!(
+                    (ours - batch).norm() < 1e-6 * batch.norm(),
+                    "lag {lag} state {k}: {ours} vs {batch}"
+                );
+                assert!(
+                    *moved < 1e-6,
+                    "lag {lag} state {k}: newest estimate {moved} from the batch one"
+                );
+            }
+        }
+        // Held at their estimate instead, the states behind the window make the newest state's
+        // covariance the one given them: far smaller than the marginal once the chain is longer
+        // than the window.
+        let (ours, batch, _) = &linear_chain(false, 4)[39];
+        assert!(ours.trace() < 0.5 * batch.trace(), "{ours} vs {batch}");
     }
 }

@@ -19,6 +19,8 @@ pub struct BenchEstimateArgs {
     pub fixed_lag: bool,
     /// Window of the fixed-lag smoother, states.
     pub lag_states: usize,
+    /// Fixed-lag smoother: marginalise the states leaving the window.
+    pub marginalise: bool,
     /// Feed one state every `1 / pace_hz` seconds, as a live pipeline would.
     pub pace_hz: Option<f64>,
     /// JSON output.
@@ -38,6 +40,7 @@ pub fn bench_estimate(problem: &Path, args: &BenchEstimateArgs) -> anyhow::Resul
             SmootherMethod::Incremental
         },
         lag_states: args.lag_states,
+        marginalise: args.marginalise,
         ..SmootherParams::default()
     });
     let report = run(

@@ -576,6 +576,10 @@ enum BenchCommand {
         /// Window of the fixed-lag smoother, states.
         #[arg(long, default_value_t = 30)]
         lag: usize,
+        /// Fixed-lag smoother: marginalise the states leaving the window into a prior instead
+        /// of holding them at their estimate.
+        #[arg(long)]
+        marginalise: bool,
         /// Feed the incremental run one state every 1/HZ seconds, as a live pipeline would
         /// (the problem's own rate is 10 Hz); default: as fast as the updates go.
         #[arg(long, value_name = "HZ")]
@@ -846,6 +850,7 @@ fn main() -> ExitCode {
                     batch_only,
                     smoother,
                     lag,
+                    marginalise,
                     pace_hz,
                     json,
                 },
@@ -860,6 +865,7 @@ fn main() -> ExitCode {
                 batch_only,
                 fixed_lag: smoother == "fixed-lag",
                 lag_states: lag,
+                marginalise,
                 pace_hz,
                 json,
             },
