@@ -158,6 +158,8 @@ pub struct FixedLagSmoother {
     consumed: Vec<bool>,
     /// The priors of the marginalised states.
     priors: Vec<Arc<MarginalPrior>>,
+    /// States that could not be marginalised (held at their estimate instead).
+    held_instead: usize,
 }
 
 impl FixedLagSmoother {
@@ -177,6 +179,7 @@ impl FixedLagSmoother {
             marginalised: 0,
             consumed: Vec::new(),
             priors: Vec::new(),
+            held_instead: 0,
         }
     }
 
@@ -304,7 +307,13 @@ impl FixedLagSmoother {
                 }
                 Err(e) => {
                     // Held at its estimate instead, as without marginalisation.
-                    tracing::warn!(state = s, "cannot marginalise a state leaving the window: {e}");
+                    if self.held_instead == 0 {
+                        tracing::warn!(
+                            state = s,
+                            "cannot marginalise a state leaving the window, held instead: {e}"
+                        );
+                    }
+                    self.held_instead += 1;
                     self.priors.extend(on_it);
                 }
             }
@@ -491,6 +500,12 @@ impl FixedLagSmoother {
     /// A factor that cannot be evaluated.
     pub fn finish(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
         self.poll(graph, values, true)?;
+        if self.held_instead > 0 {
+            tracing::warn!(
+                states = self.held_instead,
+                "states held at their estimate because they could not be marginalised"
+            );
+        }
         let all: Vec<usize> = (0..graph.len()).collect();
         let ordering = Ordering::all(values);
         levenberg_marquardt(graph, &all, values, &ordering, &LmParams::default(), &mut None)
