@@ -10,6 +10,11 @@
 //!   Older states are held at their current estimate: factors that reach them (the IMU and
 //!   odometry factor into the window, loop closures) condition the window on them. Work per
 //!   update is bounded by the window, not by the length of the run.
+//! - **Optionally** ([`SmootherParams::marginalise`]), a state leaving the window is
+//!   marginalised instead (see [`crate::marginal`]): its factors and the prior on it become a
+//!   prior on the states it was joined to, so the window is not held against the states behind
+//!   it and its covariance is the marginal one. A factor that reaches a state already
+//!   marginalised (a loop closure) still holds that state at its estimate.
 //! - **Off the critical path**, a factor that reaches behind the window (a loop closure) starts
 //!   a full batch solve of the whole graph on a background thread from a snapshot (factors are
 //!   shared, so the snapshot costs one copy of the values). When it finishes, the next update
@@ -20,8 +25,8 @@
 //! Its limits, which the incremental smoother does not have: the full re-solves cost the
 //! whole graph each (0.1-0.4 s at N = 2000), so fed faster than they finish (a recording
 //! replayed as fast as it goes) the estimate falls behind the optimum; in line
-//! (`background: false`) the run's cost grows with the square of its length; and states
-//! leaving the window are conditioned on, not marginalised, so the window's covariance is
+//! (`background: false`) the run's cost grows with the square of its length; and unless
+//! marginalising, states leaving the window are conditioned on, so the window's covariance is
 //! the covariance given the older states, smaller than the true marginal.
 
 use std::collections::BTreeSet;
@@ -532,7 +537,9 @@ impl Smoother {
     }
 
     /// Covariance of the newest state's pose after the last update: the marginal one for the
-    /// incremental smoother, the one given the states behind the window for the fixed-lag one.
+    /// incremental smoother; for the fixed-lag one, the one given the states behind the window,
+    /// or with [`SmootherParams::marginalise`] the marginal one (but for loop closures to
+    /// marginalised states).
     #[must_use]
     pub fn newest_covariance(&self) -> Option<&DMatrix<f64>> {
         match self {
