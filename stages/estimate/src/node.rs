@@ -44,10 +44,6 @@ pub struct EstimateParams {
     /// estimate, so that the window's covariance is the marginal one (default false). Loop
     /// closures to states already marginalised still hold those at their estimate.
     pub marginalise: bool,
-    /// `fixed_lag` smoother: a factor reaching behind the window (a loop closure) re-solves
-    /// the whole graph only when the window, solved with it, leaves its whitened residual
-    /// beyond the chi-square quantile at this probability (0, the default: always).
-    pub resolve_confidence: f64,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
     /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 2.28e-3).
@@ -111,7 +107,6 @@ impl Default for EstimateParams {
             incremental: o.smoother.incremental,
             lag_states: o.smoother.lag_states,
             marginalise: o.smoother.marginalise,
-            resolve_confidence: o.smoother.resolve_confidence,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
             acc_bias_random_walk: o.imu.acc_bias_random_walk,
@@ -145,7 +140,6 @@ impl EstimateParams {
                 lag_states: self.lag_states,
                 background: self.background_solves,
                 marginalise: self.marginalise,
-                resolve_confidence: self.resolve_confidence,
                 ..SmootherParams::default()
             },
             imu: ImuParams {
@@ -179,7 +173,6 @@ impl EstimateParams {
     fn check(&self) -> gprflow_params::Result {
         gprflow_params::positive("state_rate_hz", self.state_rate_hz)?;
         gprflow_params::at_least("lag_states", self.lag_states, 1)?;
-        gprflow_params::within("resolve_confidence", self.resolve_confidence, 0.0, 0.9999)?;
         let inc = &self.incremental;
         for (key, value) in [
             ("incremental.relinearize_rotation_rad", inc.relinearize_rotation_rad),

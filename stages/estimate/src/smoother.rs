@@ -41,7 +41,6 @@ use crate::graph::FactorGraph;
 use crate::incremental::{IncrementalParams, IncrementalReport, IncrementalSmoother};
 use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
 use crate::marginal::{MarginalPrior, marginalise, normal_equations};
-use crate::noise::chi2_quantile;
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
@@ -85,11 +84,6 @@ pub struct SmootherParams {
     /// window's covariance is then the marginal one. Factors that join the window to a
     /// marginalised state later (loop closures) still hold that state at its estimate.
     pub marginalise: bool,
-    /// A factor that reaches behind the window starts a whole-graph re-solve only when, after
-    /// the window is solved with it, its whitened residual is beyond the chi-square quantile at
-    /// this probability for its dimension (the window cannot take it without the states behind
-    /// it moving); 0 (the default): every such factor starts one.
-    pub resolve_confidence: f64,
 }
 
 impl Default for SmootherParams {
@@ -106,7 +100,6 @@ impl Default for SmootherParams {
             },
             newest_covariance: true,
             marginalise: false,
-            resolve_confidence: 0.0,
         }
     }
 }
@@ -172,11 +165,6 @@ pub struct FixedLagSmoother {
     priors: Vec<Arc<MarginalPrior>>,
     /// States that could not be marginalised (held at their estimate instead).
     held_instead: usize,
-    /// Factors of this update that reach behind the window, to test after the window solve
-    /// (with [`SmootherParams::resolve_confidence`]).
-    behind: Vec<usize>,
-    /// Of those, the ones the window took without a re-solve.
-    absorbed: usize,
 }
 
 impl FixedLagSmoother {
@@ -197,8 +185,6 @@ impl FixedLagSmoother {
             consumed: Vec::new(),
             priors: Vec::new(),
             held_instead: 0,
-            behind: Vec::new(),
-            absorbed: 0,
         }
     }
 
@@ -246,13 +232,7 @@ impl FixedLagSmoother {
                 let list = self.factors_of.get_mut(k.0).ok_or(Error::UnknownVariable(k.0))?;
                 list.push(fi);
                 if self.state_of[k.0].is_some_and(|s| s < start) {
-                    if self.params.resolve_confidence > 0.0 {
-                        if self.behind.last() != Some(&fi) {
-                            self.behind.push(fi);
-                        }
-                    } else {
-                        self.full_solve_wanted = true;
-                    }
+                    self.full_solve_wanted = true;
                 }
             }
         }
@@ -272,15 +252,6 @@ impl FixedLagSmoother {
             self.marginalise_old(graph, values)?;
         }
         let window = self.solve_window(graph, values)?;
-        for fi in std::mem::take(&mut self.behind) {
-            let f = &graph.factors()[fi];
-            let d2 = f.noise().whiten(&f.evaluate(values, None)?).norm_squared();
-            if d2 > chi2_quantile(self.params.resolve_confidence, f.noise().dim()) {
-                self.full_solve_wanted = true;
-            } else {
-                self.absorbed += 1;
-            }
-        }
         let mut started = false;
         if self.full_solve_wanted && self.running.is_none() {
             self.full_solve_wanted = false;
@@ -534,12 +505,6 @@ impl FixedLagSmoother {
     /// A factor that cannot be evaluated.
     pub fn finish(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
         self.poll(graph, values, true)?;
-        if self.absorbed > 0 {
-            tracing::info!(
-                factors = self.absorbed,
-                "factors reaching behind the window that the window took without a whole-graph re-solve"
-            );
-        }
         if self.held_instead > 0 {
             tracing::warn!(
                 states = self.held_instead,
@@ -687,72 +652,6 @@ mod tests {
             out.push((ours, batch, moved));
         }
         out
-    }
-
-    #[test]
-    fn only_a_loop_closure_the_window_cannot_take_re_solves_the_whole_graph() {
-        use crate::factors::{BetweenPose, PosePrior};
-        use crate::lie::Pose3;
-        let params = SmootherParams {
-            method: SmootherMethod::FixedLag,
-            lag_states: 4,
-            background: false,
-            resolve_confidence: 0.99,
-            ..SmootherParams::default()
-        };
-        let mut smoother = FixedLagSmoother::new(params);
-        let mut graph = FactorGraph::new();
-        let mut values = Values::new();
-        let odo = NoiseModel::isotropic(6, 0.01).expect("noise");
-        let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.1, 1.0, 0.0, 0.0));
-        let mut ids: Vec<VarId> = Vec::new();
-        let mut started = Vec::new();
-        for k in 0..32 {
-            let guess = ids
-                .last()
-                .map_or(Pose3::identity(), |p| values.pose(*p).expect("pose").compose(&step));
-            let id = values.push(Variable::Pose(guess));
-            if k == 0 {
-                graph.add(PosePrior::new(id, Pose3::identity(), odo.clone()).expect("f"));
-            } else {
-                graph.add(BetweenPose::new(ids[k - 1], id, step, odo.clone()).expect("f"));
-            }
-            // A loop closure to state 5 at state 30 that agrees with the odometry, and at
-            // state 31 one that is a metre off.
-            if k == 30 || k == 31 {
-                let between = values.pose(ids[5]).expect("pose").between(&guess);
-                let off = if k == 31 {
-                    Pose3::exp(&Vector6::new(0.0, 0.0, 0.0, 1.0, 0.0, 0.0))
-                } else {
-                    Pose3::identity()
-                };
-                graph.add(BetweenPose::new(ids[5], id, between.compose(&off), odo.clone()).expect("f"));
-            }
-            ids.push(id);
-            started.push(
-                smoother
-                    .update(&graph, &mut values, &[id])
-                    .expect("update")
-                    .started_full_solve,
-            );
-        }
-        assert!(!started[..31].iter().any(|s| *s), "{started:?}");
-        assert!(started[31]);
-        // Without the test every factor behind the window re-solves.
-        let mut always = FixedLagSmoother::new(SmootherParams {
-            resolve_confidence: 0.0,
-            ..params
-        });
-        let mut v2 = Values::new();
-        for (k, id) in ids.iter().enumerate() {
-            v2.push(*values.get(*id).expect("v"));
-            let mut g = FactorGraph::new();
-            for f in graph.factors().iter().filter(|f| f.keys().iter().all(|key| key.0 <= k)) {
-                g.add_shared(f.clone());
-            }
-            let rep = always.update(&g, &mut v2, &[*id]).expect("update");
-            assert_eq!(rep.started_full_solve, k >= 30, "state {k}");
-        }
     }
 
     #[test]
