@@ -462,16 +462,8 @@ impl IncrementalSmoother {
             a.columns_mut(c0, j.ncols()).copy_from(j);
             c0 += j.ncols();
         }
-        noise.whiten_jacobian(&mut a);
-        let mut rw = noise.whiten(&r);
-        let s = noise.robust_scale(&rw);
-        if s != 1.0 {
-            a *= s;
-            rw *= s;
-        }
-        let mut h = DMatrix::zeros(cols, cols);
-        let mut g = DVector::zeros(cols);
-        crate::linear::gram(&a, &rw, &mut Vec::new(), &mut h, &mut g);
+        let (mut h, mut g) = (DMatrix::zeros(cols, cols), DVector::zeros(cols));
+        crate::linear::whitened_gram(noise, &mut a, &r, &mut Vec::new(), &mut h, &mut g);
         Ok(Hessian { keys, h, g })
     }
 

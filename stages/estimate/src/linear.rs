@@ -21,6 +21,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
+use crate::noise::NoiseModel;
 use crate::values::{Values, VarId};
 use crate::{Error, Result};
 
@@ -421,10 +422,7 @@ pub fn linearize_into(
             }
         }
         let r = f.evaluate(values, Some(&mut jac[..keys.len()]))?;
-        let mut rw = noise.whiten(&r);
-        let norm = rw.norm();
-        error += noise.kernel().map_or(0.5 * norm * norm, |k| k.loss(norm));
-        let s = noise.robust_scale(&rw);
+        let loss = |norm: f64| noise.kernel().map_or(0.5 * norm * norm, |k| k.loss(norm));
         free.clear();
         let mut cols = 0;
         for (k, key) in keys.iter().enumerate() {
@@ -434,22 +432,16 @@ pub fn linearize_into(
             }
         }
         if free.is_empty() {
+            error += loss(noise.whiten(&r).norm());
             continue;
         }
         if jall.shape() != (m, cols) {
             jall = DMatrix::zeros(m, cols);
-            jtj = DMatrix::zeros(cols, cols);
-            g = DVector::zeros(cols);
         }
         for &(k, _, c0, _, d) in &free {
             jall.columns_mut(c0, d).copy_from(&jac[k]);
         }
-        noise.whiten_jacobian(&mut jall);
-        if s != 1.0 {
-            jall *= s;
-            rw *= s;
-        }
-        gram(&jall, &rw, &mut jt, &mut jtj, &mut g);
+        error += loss(whitened_gram(noise, &mut jall, &r, &mut jt, &mut jtj, &mut g));
         for &(_, pa, ca, off_a, da) in &free {
             for (gi, gv) in gradient.rows_mut(off_a, da).iter_mut().zip(g.rows(ca, da).iter()) {
                 *gi += gv;
@@ -475,6 +467,35 @@ pub fn linearize_into(
     }
     ne.error = error;
     Ok(())
+}
+
+/// One factor's information: its Jacobian `a` (the free keys' columns side by side) whitened
+/// and robust-reweighted in place, then `J^T J` and `J^T r` of it and the residual `r` into `h`
+/// and `g` (resized to fit). Returns the norm of the whitened residual before reweighting (the
+/// argument of the factor's loss).
+pub(crate) fn whitened_gram(
+    noise: &NoiseModel,
+    a: &mut DMatrix<f64>,
+    r: &DVector<f64>,
+    jt: &mut Vec<f64>,
+    h: &mut DMatrix<f64>,
+    g: &mut DVector<f64>,
+) -> f64 {
+    noise.whiten_jacobian(a);
+    let mut rw = noise.whiten(r);
+    let norm = rw.norm();
+    let s = noise.robust_scale(&rw);
+    if s != 1.0 {
+        *a *= s;
+        rw *= s;
+    }
+    let n = a.ncols();
+    if h.shape() != (n, n) {
+        *h = DMatrix::zeros(n, n);
+        *g = DVector::zeros(n);
+    }
+    gram(a, &rw, jt, h, g);
+    norm
 }
 
 /// `J^T J` (full, symmetric) and `J^T r` of an `m x n` Jacobian; with AVX2 where the CPU

@@ -180,18 +180,7 @@ pub fn normal_equations(
             a.columns_mut(c0, d).copy_from(&jac[i]);
             c0 += d;
         }
-        noise.whiten_jacobian(&mut a);
-        let mut rw = noise.whiten(&r);
-        let s = noise.robust_scale(&rw);
-        if s != 1.0 {
-            a *= s;
-            rw *= s;
-        }
-        if hf.shape() != (cols, cols) {
-            hf = DMatrix::zeros(cols, cols);
-            gf = DVector::zeros(cols);
-        }
-        crate::linear::gram(&a, &rw, &mut jt, &mut hf, &mut gf);
+        crate::linear::whitened_gram(noise, &mut a, &r, &mut jt, &mut hf, &mut gf);
         let mut ca = 0;
         for &(_, off_a, da) in &free {
             let mut gb = g.rows_mut(off_a, da);

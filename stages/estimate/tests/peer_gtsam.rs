@@ -20,6 +20,19 @@ fn fixture(name: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name)
 }
 
+/// The benchmark's batch solve and `smoother` fed one state at a time, without line factors.
+fn run_with(problem: &Problem, smoother: SmootherParams) -> gprflow_estimate::bench::BenchReport {
+    run(
+        problem,
+        &BenchOptions {
+            lines: LineMode::Off,
+            smoother: Some(smoother),
+            pace_hz: None,
+        },
+    )
+    .expect("bench")
+}
+
 #[test]
 fn batch_and_incremental_match_gtsam() {
     let problem = Problem::read(&fixture("peer_n300.txt")).expect("problem fixture");
@@ -32,20 +45,14 @@ fn batch_and_incremental_match_gtsam() {
     };
     assert_eq!(problem.loop_closures.len() as f64, g("loop_closures"));
 
-    let smoother = SmootherParams {
-        method: SmootherMethod::Incremental,
-        background: false,
-        ..SmootherParams::default()
-    };
-    let ours = run(
+    let ours = run_with(
         &problem,
-        &BenchOptions {
-            lines: LineMode::Off,
-            smoother: Some(smoother),
-            pace_hz: None,
+        SmootherParams {
+            method: SmootherMethod::Incremental,
+            background: false,
+            ..SmootherParams::default()
         },
-    )
-    .expect("bench");
+    );
 
     let rel = |a: f64, b: f64| (a - b).abs() / b.abs();
     assert!(
@@ -140,21 +147,15 @@ fn fixed_lag_marginalisation_brings_the_covariance_to_the_marginal() {
         })
         .collect();
     let variances = |marginalise: bool| -> Vec<f64> {
-        let smoother = SmootherParams {
-            method: SmootherMethod::FixedLag,
-            background: false,
-            marginalise,
-            ..SmootherParams::default()
-        };
-        let report = run(
+        let report = run_with(
             &problem,
-            &BenchOptions {
-                lines: LineMode::Off,
-                smoother: Some(smoother),
-                pace_hz: None,
+            SmootherParams {
+                method: SmootherMethod::FixedLag,
+                background: false,
+                marginalise,
+                ..SmootherParams::default()
             },
-        )
-        .expect("bench");
+        );
         let cov = report
             .incremental
             .and_then(|i| i.newest_pose_covariance)
