@@ -329,6 +329,15 @@ impl HessianStructure {
         &self.ordering
     }
 
+    /// The largest diagonal entry of a Hessian stored in this structure (0 when empty).
+    #[must_use]
+    pub fn max_diagonal(&self, hessian: &[f64]) -> f64 {
+        self.diag
+            .iter()
+            .filter_map(|&d| hessian.get(d))
+            .fold(0.0, |m: f64, v| m.max(*v))
+    }
+
     /// Number of stored entries.
     #[must_use]
     pub fn nnz(&self) -> usize {

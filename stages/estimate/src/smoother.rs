@@ -44,6 +44,10 @@ use crate::marginal::{MarginalPrior, marginalise, normal_equations};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
+/// Damping, relative to the largest diagonal entry, of a window Hessian that has no Cholesky
+/// factor undamped, for the newest state's covariance.
+const COVARIANCE_DAMPING: f64 = 1e-9;
+
 /// Which smoother runs the updates (the `estimate` stage's `smoother` parameter:
 /// `incremental` or `fixed_lag`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
@@ -397,9 +401,14 @@ impl FixedLagSmoother {
         };
         self.newest_cov = None;
         // From the solver's last linearisation (at most one accepted step from the solution).
+        // A window with a direction its factors leave free (a line seen from one side only) has
+        // no Cholesky factor: it gets the least damping that makes one (a relative 1e-9 of the
+        // largest diagonal entry, as a very weak prior on that direction), so that whether the
+        // pose's covariance is published does not depend on rounding.
         if self.params.newest_covariance
             && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
             && let Ok(f) = Factorization::new(st, &ne.hessian, 0.0)
+                .or_else(|_| Factorization::new(st, &ne.hessian, COVARIANCE_DAMPING * st.max_diagonal(&ne.hessian)))
         {
             self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
         }
@@ -652,6 +661,54 @@ mod tests {
             out.push((ours, batch, moved));
         }
         out
+    }
+
+    #[test]
+    fn a_window_with_a_free_direction_still_gives_the_pose_covariance() {
+        use crate::factors::{BetweenPose, PosePrior, TrackOffset};
+        use crate::lie::Pose3;
+        // Poses in a chain; with `other`, the newest is also tied along-track to a pose that is
+        // no state and that nothing else constrains: five of its six directions are free, so the
+        // window has no Cholesky factor undamped.
+        let newest_cov = |other: bool| {
+            let mut smoother = FixedLagSmoother::new(SmootherParams {
+                method: SmootherMethod::FixedLag,
+                lag_states: 4,
+                background: false,
+                ..SmootherParams::default()
+            });
+            let (mut graph, mut values) = (FactorGraph::new(), Values::new());
+            let odo = NoiseModel::isotropic(6, 0.05).expect("noise");
+            let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.05, 1.0, 0.0, 0.0));
+            let mut prev: Option<VarId> = None;
+            for _ in 0..6 {
+                let guess = prev.map_or(Pose3::identity(), |p| values.pose(p).expect("pose").compose(&step));
+                let id = values.push(Variable::Pose(guess));
+                match prev {
+                    None => graph.add(PosePrior::new(id, Pose3::identity(), odo.clone()).expect("f")),
+                    Some(p) => graph.add(BetweenPose::new(p, id, step, odo.clone()).expect("f")),
+                };
+                prev = Some(id);
+                smoother.update(&graph, &mut values, &[id]).expect("update");
+            }
+            if other {
+                let pose = prev.expect("a pose");
+                let at = values.pose(pose).expect("pose").compose(&step);
+                let o = values.push(Variable::Pose(at));
+                let noise = NoiseModel::isotropic(1, 0.01).expect("noise");
+                // Measured as the estimate has it, so that the solve leaves the poses in place.
+                let probe = TrackOffset::along(pose, o, 0.0, noise.clone()).expect("f");
+                let seen = probe.evaluate(&values, None).expect("evaluate")[0];
+                graph.add(TrackOffset::along(pose, o, seen, noise).expect("f"));
+            }
+            // An update without a new state: the other pose, if any, joins the window.
+            smoother.update(&graph, &mut values, &[]).expect("update");
+            smoother.newest_covariance().cloned()
+        };
+        let without = newest_cov(false).expect("covariance alone");
+        let with = newest_cov(true).expect("covariance beside a free pose");
+        // The free pose takes up the factor: the newest pose's covariance is the one without it.
+        assert!((&with - &without).norm() < 1e-6 * without.norm(), "{with} vs {without}");
     }
 
     #[test]
