@@ -159,10 +159,12 @@ pub fn replay(args: &ReplayArgs) -> Result<ExitCode> {
     let stop = bind_signals().context("cannot install signal handlers")?;
     let transport = IoxTransport::new(&format!("gprflow_replay_{}", std::process::id()), &prefix, stop.clone())?;
     // what each topic is called on the bus, and how many readers to wait for: a launch with
-    // --external declares all its outside topics at once, before anything starts, so once one
-    // of ours is declared, those not declared are read by nobody and are left out
+    // --external declares all its outside topics before anything starts, one after the other
+    // within milliseconds, so once one of ours is declared and the set has stopped growing for
+    // DECLARATIONS_SETTLE, those not declared are read by nobody and are left out
     let on_bus = |topic: &String| remaps.get(topic).unwrap_or(topic).clone();
     let started = Instant::now();
+    let mut seen: Option<(Vec<Option<usize>>, Instant)> = None;
     let declared: Vec<Option<usize>> = if args.readers.is_some() {
         Vec::new()
     } else {
@@ -172,7 +174,14 @@ pub fn replay(args: &ReplayArgs) -> Result<ExitCode> {
                 .map(|(topic, _)| transport.declared_readers(&on_bus(topic)))
                 .collect();
             if found.iter().any(Option::is_some) {
-                break found;
+                match &seen {
+                    Some((before, since)) if *before == found => {
+                        if since.elapsed() >= DECLARATIONS_SETTLE {
+                            break found;
+                        }
+                    }
+                    _ => seen = Some((found, Instant::now())),
+                }
             }
             if started.elapsed() > wait {
                 let names: Vec<String> = chosen.iter().map(|(t, _)| format!("`{}`", on_bus(t))).collect();
@@ -315,6 +324,9 @@ struct Tap {
 
 /// How often the bus is looked at for new topics.
 const LOOK_EVERY: Duration = Duration::from_millis(100);
+/// How long the replay waits for a run's declared outside topics to stop growing (a launch
+/// declares them one after the other, within milliseconds of each other).
+const DECLARATIONS_SETTLE: Duration = Duration::from_millis(300);
 
 /// `gprflow record`: writes the topics of a bus that match `topics` to an MCAP file, from
 /// when it finds them until every one has ended (or Ctrl-C, or `--duration-s`).
