@@ -227,6 +227,14 @@ impl Pose3 {
         }
     }
 
+    /// The inverse of [`Pose3::retract`]: `delta` with `self.retract(delta) = other`.
+    #[must_use]
+    pub fn local(&self, other: &Self) -> Vector6<f64> {
+        let w = so3_log(&(self.rot.transpose() * other.rot));
+        let t = self.rot.transpose() * (other.trans_m - self.trans_m);
+        Vector6::new(w.x, w.y, w.z, t.x, t.y, t.z)
+    }
+
     /// Adjoint for `[w, v]` tangent ordering: `Exp(Ad(T) xi) = T Exp(xi) T^-1`.
     #[must_use]
     pub fn adjoint(&self) -> Matrix6<f64> {

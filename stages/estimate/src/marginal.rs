@@ -8,10 +8,9 @@
 //! re-centred there ([`MarginalPrior::recentred`]), keeping its information: the re-solve's
 //! values are the optimum of every factor, the marginalised ones included.
 
-use nalgebra::{DMatrix, DVector, SymmetricEigen, Vector6};
+use nalgebra::{DMatrix, DVector, SymmetricEigen};
 
 use crate::factor::Factor;
-use crate::lie::so3_log;
 use crate::noise::NoiseModel;
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
@@ -19,28 +18,6 @@ use crate::{Error, Result};
 /// Eigenvalues below this fraction of the largest are treated as zero (directions the
 /// marginalised factors say nothing about).
 const RELATIVE_EIGEN_FLOOR: f64 = 1e-10;
-
-/// `delta` with `from.retract(delta) = to` (the inverse of [`Variable::retract`]).
-///
-/// # Errors
-/// [`Error::LinearSolve`] when the two are not the same kind of variable.
-pub fn local_coordinates(from: &Variable, to: &Variable) -> Result<DVector<f64>> {
-    Ok(match (from, to) {
-        (Variable::Pose(a), Variable::Pose(b)) => {
-            let w = so3_log(&(a.rot.transpose() * b.rot));
-            let t = a.rot.transpose() * (b.trans_m - a.trans_m);
-            DVector::from_column_slice(Vector6::new(w.x, w.y, w.z, t.x, t.y, t.z).as_slice())
-        }
-        (Variable::Velocity(a), Variable::Velocity(b)) => DVector::from_column_slice((b - a).as_slice()),
-        (Variable::Bias(a), Variable::Bias(b)) => DVector::from_column_slice((b.vector() - a.vector()).as_slice()),
-        (Variable::Line(a), Variable::Line(b)) => DVector::from_vec(vec![b.rho_m - a.rho_m, b.theta_rad - a.theta_rad]),
-        _ => {
-            return Err(Error::LinearSolve(
-                "local coordinates between different kinds of variable".into(),
-            ));
-        }
-    })
-}
 
 /// A linear Gaussian prior `0.5 |A d + b|^2` on the local coordinates `d` of its variables about
 /// the point where it was made: what the marginalised states said about the ones they left.
@@ -114,7 +91,10 @@ impl Factor for MarginalPrior {
         let mut r = self.offset.clone();
         let mut col = 0;
         for (key, at) in self.keys.iter().zip(&self.at) {
-            let d = local_coordinates(at, values.get(*key)?)?;
+            let d = at.local(values.get(*key)?).ok_or(Error::WrongKind {
+                id: key.0,
+                expected: "variable of the kind its marginal prior was made on",
+            })?;
             r += self.sqrt_information.columns(col, d.len()) * &d;
             col += d.len();
         }
@@ -267,7 +247,7 @@ mod tests {
     use crate::graph::FactorGraph;
     use crate::lie::Pose3;
     use crate::linear::{Factorization, HessianStructure, Ordering, linearize, marginal_covariance};
-    use nalgebra::Vector3;
+    use nalgebra::Vector6;
 
     fn chain() -> (FactorGraph, Values, Vec<VarId>) {
         let mut values = Values::new();
@@ -297,26 +277,21 @@ mod tests {
         (graph, values, ids)
     }
 
-    #[test]
-    fn local_coordinates_invert_the_retraction() {
-        let a = Variable::Pose(Pose3::exp(&Vector6::new(0.3, -0.2, 1.0, 2.0, -1.0, 0.5)));
-        let d = DVector::from_vec(vec![0.05, -0.1, 0.2, 0.3, -0.4, 0.1]);
-        let b = a.retract(d.as_view());
-        assert!((local_coordinates(&a, &b).expect("local") - &d).norm() < 1e-12);
-        assert!(local_coordinates(&a, &Variable::Velocity(Vector3::zeros())).is_err());
+    /// The factors of `graph` on `id`.
+    fn factors_on(graph: &FactorGraph, id: VarId) -> Vec<&dyn Factor> {
+        graph
+            .factors()
+            .iter()
+            .filter(|f| f.keys().contains(&id))
+            .map(|f| f.as_ref())
+            .collect()
     }
 
     #[test]
     fn the_prior_carries_the_marginal_information_of_what_it_replaced() {
         let (graph, values, ids) = chain();
         // Marginalise pose 0 out of the factors on it: the prior and the two odometry factors.
-        let on_first: Vec<&dyn Factor> = graph
-            .factors()
-            .iter()
-            .filter(|f| f.keys().contains(&ids[0]))
-            .map(|f| f.as_ref())
-            .collect();
-        let prior = marginalise(&on_first, &values, &[ids[0]], &[ids[1], ids[2]])
+        let prior = marginalise(&factors_on(&graph, ids[0]), &values, &[ids[0]], &[ids[1], ids[2]])
             .expect("marginalise")
             .expect("information");
         // Against the dense Schur complement of the whole linearised graph.
@@ -384,12 +359,6 @@ mod tests {
     fn undetermined_marginalised_variables_are_an_error() {
         let (graph, values, ids) = chain();
         // Poses 3 and 4 from the one odometry factor between them: six directions free.
-        let last: Vec<&dyn Factor> = graph
-            .factors()
-            .iter()
-            .filter(|f| f.keys().contains(&ids[4]))
-            .map(|f| f.as_ref())
-            .collect();
-        assert!(marginalise(&last, &values, &[ids[3], ids[4]], &[ids[2]]).is_err());
+        assert!(marginalise(&factors_on(&graph, ids[4]), &values, &[ids[3], ids[4]], &[ids[2]]).is_err());
     }
 }

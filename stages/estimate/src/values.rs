@@ -1,6 +1,6 @@
 //! Variables of the estimation problem and the container that holds their current values.
 
-use nalgebra::{DVectorView, Vector3, Vector6};
+use nalgebra::{DVector, DVectorView, Vector3, Vector6};
 
 use crate::lie::Pose3;
 use crate::{Error, Result};
@@ -89,6 +89,19 @@ impl Variable {
                 theta_rad: l.theta_rad + delta[1],
             }),
         }
+    }
+
+    /// The inverse of [`Variable::retract`]: `delta` with `self.retract(delta) = other`, or
+    /// `None` when `other` is another kind of variable.
+    #[must_use]
+    pub fn local(&self, other: &Self) -> Option<DVector<f64>> {
+        Some(match (self, other) {
+            (Self::Pose(a), Self::Pose(b)) => DVector::from_column_slice(a.local(b).as_slice()),
+            (Self::Velocity(a), Self::Velocity(b)) => DVector::from_column_slice((b - a).as_slice()),
+            (Self::Bias(a), Self::Bias(b)) => DVector::from_column_slice((b.vector() - a.vector()).as_slice()),
+            (Self::Line(a), Self::Line(b)) => DVector::from_vec(vec![b.rho_m - a.rho_m, b.theta_rad - a.theta_rad]),
+            _ => return None,
+        })
     }
 }
 
@@ -207,5 +220,30 @@ impl Values {
                 expected: "line",
             }),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn local_inverts_the_retraction() {
+        let pose = Variable::Pose(Pose3::exp(&Vector6::new(0.3, -0.2, 1.0, 2.0, -1.0, 0.5)));
+        let velocity = Variable::Velocity(Vector3::new(1.0, -2.0, 0.5));
+        let bias = Variable::Bias(ImuBias::from_vector(&Vector6::new(0.1, 0.2, -0.3, 0.01, 0.02, 0.03)));
+        let line = Variable::Line(HoughLine {
+            rho_m: 4.0,
+            theta_rad: 0.7,
+        });
+        for v in [pose, velocity, bias, line] {
+            let d = DVector::from_fn(v.dim(), |i, _| {
+                0.05 * (i as f64 + 1.0) * if i % 2 == 0 { 1.0 } else { -1.0 }
+            });
+            let moved = v.retract(d.as_view());
+            let back = v.local(&moved).expect("same kind");
+            assert!((back - &d).norm() < 1e-12, "{v:?}");
+        }
+        assert!(pose.local(&velocity).is_none());
     }
 }
