@@ -275,6 +275,18 @@ impl FixedLagSmoother {
         })
     }
 
+    /// The factors on `vars` not folded into a prior, in graph order.
+    fn live_factors(&self, vars: &[VarId]) -> Vec<usize> {
+        let mut found: Vec<usize> = vars
+            .iter()
+            .flat_map(|v| self.factors_of[v.0].iter().copied())
+            .filter(|f| !self.consumed.get(*f).copied().unwrap_or(false))
+            .collect();
+        found.sort_unstable();
+        found.dedup();
+        found
+    }
+
     /// Marginalises the states that have left the window, oldest first: each one's factors
     /// not yet folded into a prior (and the priors on it) become one prior on the later states
     /// they reach; older states and variables of no state are held at their estimate.
@@ -284,13 +296,7 @@ impl FixedLagSmoother {
             let s = self.marginalised;
             self.marginalised += 1;
             let gone = &self.states[s];
-            let mut taken: Vec<usize> = gone
-                .iter()
-                .flat_map(|v| self.factors_of[v.0].iter().copied())
-                .filter(|f| !self.consumed[*f])
-                .collect();
-            taken.sort_unstable();
-            taken.dedup();
+            let taken = self.live_factors(gone);
             let (on_it, others): (Vec<_>, Vec<_>) = self
                 .priors
                 .drain(..)
@@ -336,14 +342,7 @@ impl FixedLagSmoother {
     fn recentre_priors(&mut self, graph: &FactorGraph, values: &Values) -> Result<()> {
         let mut recentred = Vec::with_capacity(self.priors.len());
         for p in &self.priors {
-            let mut on: Vec<usize> = p
-                .variables()
-                .iter()
-                .flat_map(|v| self.factors_of[v.0].iter().copied())
-                .filter(|f| !self.consumed.get(*f).copied().unwrap_or(false))
-                .collect();
-            on.sort_unstable();
-            on.dedup();
+            let on = self.live_factors(p.variables());
             let mut list: Vec<&dyn Factor> = on.iter().map(|f| graph.factors()[*f].as_ref()).collect();
             for q in &self.priors {
                 if !Arc::ptr_eq(p, q) && q.variables().iter().any(|k| p.variables().contains(k)) {
@@ -360,16 +359,7 @@ impl FixedLagSmoother {
     fn solve_window(&mut self, graph: &FactorGraph, values: &mut Values) -> Result<LmReport> {
         let start = self.window_start();
         let mut free: Vec<VarId> = self.states[start..].iter().flatten().copied().collect();
-        let mut factors = BTreeSet::new();
-        for v in &free {
-            factors.extend(
-                self.factors_of[v.0]
-                    .iter()
-                    .copied()
-                    .filter(|f| !self.consumed.get(*f).copied().unwrap_or(false)),
-            );
-        }
-        let factors: Vec<usize> = factors.into_iter().collect();
+        let factors = self.live_factors(&free);
         // Variables of no state (map lines) are solved with the window when it observes them.
         let mut globals = BTreeSet::new();
         for &fi in &factors {
