@@ -27,6 +27,7 @@
 
 pub mod batch;
 pub mod bench;
+mod cholesky;
 pub mod factor;
 pub mod factors;
 pub mod graph;

@@ -12,13 +12,15 @@ use std::sync::Arc;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::amd;
 use faer::sparse::linalg::cholesky::{
-    CholeskySymbolicParams, LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+    CholeskySymbolicParams, LltRef, SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering,
+    factorize_symbolic_cholesky,
 };
 use faer::sparse::linalg::{SupernodalThreshold, SymbolicSupernodalParams};
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
+use faer::sparse::{SymbolicSparseColMat, SymbolicSparseColMatRef};
 use faer::{Conj, Par, Side};
 use nalgebra::{DMatrix, DVector};
 
+use crate::cholesky::{UpdatePlan, Workspace, factorize};
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
 use crate::noise::NoiseModel;
@@ -120,6 +122,8 @@ pub struct HessianStructure {
     /// inside each of the column variable's columns)`, sorted by row variable.
     segments: Vec<Vec<(usize, usize)>>,
     symbolic: Arc<SymbolicCholesky<usize>>,
+    /// Which supernodes update which (see [`crate::cholesky`]).
+    plan: Arc<UpdatePlan>,
     /// The block pattern in the caller's order (reuse key), and the variables' dimensions.
     pattern: Vec<(usize, usize)>,
     dims: Vec<usize>,
@@ -280,6 +284,10 @@ impl HessianStructure {
         };
         let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Upper, SymmetricOrdering::Identity, params)
             .map_err(|e| Error::LinearSolve(format!("symbolic: {e:?}")))?;
+        let SymbolicCholeskyRaw::Supernodal(supernodal) = symbolic.raw() else {
+            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
+        };
+        let plan = Arc::new(UpdatePlan::new(supernodal));
         Ok(Self {
             ordering,
             elimination_position,
@@ -289,6 +297,7 @@ impl HessianStructure {
             diag,
             segments,
             symbolic: Arc::new(symbolic),
+            plan,
             pattern,
             dims,
         })
@@ -579,9 +588,10 @@ fn gram_portable(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mu
 /// A numeric Cholesky factorisation of `H + lambda I`, with the buffers to redo it.
 pub struct Factorization {
     symbolic: Arc<SymbolicCholesky<usize>>,
+    plan: Arc<UpdatePlan>,
     values: Vec<f64>,
     damped: Vec<f64>,
-    scratch: MemBuffer,
+    work: Workspace,
     dim: usize,
 }
 
@@ -600,13 +610,15 @@ impl Factorization {
     /// # Errors
     /// [`Error::LinearSolve`] when the matrix is not positive definite.
     pub fn new(structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<Self> {
-        let symbolic = structure.symbolic.clone();
-        let scratch = MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
+        let SymbolicCholeskyRaw::Supernodal(supernodal) = structure.symbolic.raw() else {
+            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
+        };
         let mut f = Self {
-            values: vec![0.0; symbolic.len_val()],
+            values: vec![0.0; structure.symbolic.len_val()],
             damped: Vec::with_capacity(hessian.len()),
-            symbolic,
-            scratch,
+            work: Workspace::new(supernodal, &structure.plan),
+            symbolic: structure.symbolic.clone(),
+            plan: structure.plan.clone(),
             dim: structure.dim,
         };
         f.refactor(structure, hessian, lambda)?;
@@ -630,26 +642,17 @@ impl Factorization {
                 self.damped[d] += lambda;
             }
         }
-        let sym = SymbolicSparseColMatRef::new_checked(
-            structure.dim,
-            structure.dim,
-            &structure.col_ptr,
-            None,
-            &structure.row_idx,
-        );
-        let mat = SparseColMatRef::new(sym, &self.damped);
-        self.symbolic
-            .factorize_numeric_llt::<f64>(
-                &mut self.values,
-                mat,
-                Side::Lower,
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut self.scratch),
-                Default::default(),
-            )
-            .map_err(|e| Error::LinearSolve(format!("{e:?}")))?;
-        Ok(())
+        let SymbolicCholeskyRaw::Supernodal(supernodal) = self.symbolic.raw() else {
+            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
+        };
+        factorize(
+            supernodal,
+            &self.plan,
+            (&structure.col_ptr, &structure.row_idx, &self.damped),
+            &mut self.values,
+            &mut self.work,
+        )
+        .map_err(|e| Error::LinearSolve(format!("not positive definite at column {}", e.column)))
     }
 
     /// Solves `(H + lambda I) x = rhs` in place; `rhs` may hold several columns (column-major).
@@ -729,6 +732,101 @@ mod tests {
             gram_portable(&j, &r, &mut Vec::new(), &mut h2, &mut g2);
             assert_eq!((h2, g2), (jtj, g), "{m}x{n}");
         }
+    }
+
+    /// A pose chain of `n` with a loop closure every `every` poses back to a pose `back` earlier.
+    fn chain_with_closures(n: usize, every: usize, back: usize) -> (FactorGraph, Values) {
+        let mut values = Values::new();
+        let mut graph = FactorGraph::new();
+        let noise = NoiseModel::diagonal(&[0.01, 0.02, 0.03, 0.1, 0.2, 0.3]).expect("noise");
+        let ids: Vec<VarId> = (0..n)
+            .map(|k| {
+                let t = k as f64;
+                values.push(Variable::Pose(Pose3::exp(&Vector6::new(
+                    0.01 * t.sin(),
+                    0.02 * t.cos(),
+                    0.05 * t,
+                    t,
+                    0.3 * t.sin(),
+                    0.0,
+                ))))
+            })
+            .collect();
+        graph.add(PosePrior::new(ids[0], Pose3::identity(), noise.clone()).expect("prior"));
+        let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.05, 1.0, 0.0, 0.0));
+        for w in ids.windows(2) {
+            graph.add(BetweenPose::new(w[0], w[1], step, noise.clone()).expect("between"));
+        }
+        for k in (back..n).step_by(every) {
+            graph.add(BetweenPose::new(ids[k - back], ids[k], Pose3::identity(), noise.clone()).expect("closure"));
+        }
+        (graph, values)
+    }
+
+    #[test]
+    fn supernodal_factor_is_faers_and_visits_only_the_updating_supernodes() {
+        for (n, every, back) in [(3, 5, 2), (400, 1000, 1), (400, 7, 50), (400, 3, 397)] {
+            let (graph, values) = chain_with_closures(n, every, back);
+            let all: Vec<usize> = (0..graph.len()).collect();
+            let st = HessianStructure::new(&graph, &all, &values, &Ordering::all(&values)).expect("structure");
+            let ne = linearize(&graph, &all, &values, &st).expect("linearize");
+            let ours = Factorization::new(&st, &ne.hessian, 1e-4).expect("ours");
+            // faer's own numeric factorisation of the same damped matrix.
+            let mut damped = ne.hessian.clone();
+            for &d in &st.diag {
+                damped[d] += 1e-4;
+            }
+            let sym = SymbolicSparseColMatRef::new_checked(st.dim, st.dim, &st.col_ptr, None, &st.row_idx);
+            let mut theirs = vec![0.0; st.symbolic.len_val()];
+            let mut mem = MemBuffer::new(
+                st.symbolic
+                    .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+            );
+            st.symbolic
+                .factorize_numeric_llt::<f64>(
+                    &mut theirs,
+                    faer::sparse::SparseColMatRef::new(sym, &damped),
+                    Side::Lower,
+                    Default::default(),
+                    Par::Seq,
+                    MemStack::new(&mut mem),
+                    Default::default(),
+                )
+                .expect("faer");
+            let scale = theirs.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            let worst = ours
+                .values
+                .iter()
+                .zip(&theirs)
+                .fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                worst <= 1e-12 * scale,
+                "n {n}: L differs by {worst} (largest entry {scale})"
+            );
+            // A chain's elimination tree is a path: each supernode is updated by a few, not
+            // by all of the supernodes before it.
+            let SymbolicCholeskyRaw::Supernodal(sn) = st.symbolic.raw() else {
+                panic!("supernodal")
+            };
+            assert!(
+                st.plan.len() <= 4 * sn.n_supernodes(),
+                "n {n}: {} updates for {} supernodes",
+                st.plan.len(),
+                sn.n_supernodes()
+            );
+        }
+    }
+
+    #[test]
+    fn a_matrix_that_is_not_positive_definite_names_its_column() {
+        let (graph, values) = chain_with_closures(50, 1000, 1);
+        let all: Vec<usize> = (0..graph.len()).collect();
+        let st = HessianStructure::new(&graph, &all, &values, &Ordering::all(&values)).expect("structure");
+        let mut ne = linearize(&graph, &all, &values, &st).expect("linearize");
+        let d = st.diag[100];
+        ne.hessian[d] = -1.0;
+        let e = Factorization::new(&st, &ne.hessian, 0.0).expect_err("indefinite");
+        assert!(e.to_string().contains("column 100"), "{e}");
     }
 
     #[test]

@@ -743,6 +743,10 @@ impl OnlineEstimator {
                 factors = self.graph.len(),
                 seconds = lm.seconds,
                 iterations = lm.iterations,
+                linear_solves = lm.linear_solves,
+                linearize_s = lm.linearize_s,
+                solve_s = lm.solve_s,
+                evaluate_s = lm.evaluate_s,
                 initial_error = lm.initial_error,
                 final_error = lm.final_error,
                 "estimate: final solve of the whole graph"
