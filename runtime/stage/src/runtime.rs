@@ -341,6 +341,11 @@ impl Outputs {
         Ok(())
     }
 
+    /// Data frames sent on all outputs so far.
+    fn sent(&self) -> u64 {
+        self.outboxes.iter().map(Outbox::sent).sum()
+    }
+
     fn advance_watermarks(&mut self, stamp_ns: i64) -> Result<(), BusError> {
         for o in &mut self.outboxes {
             o.advance_watermark(stamp_ns)?;
@@ -601,6 +606,7 @@ pub fn run_node<S: Stage>(
                 Step::Deliver(i) => {
                     let Some(frame) = inputs[i].head.take() else { continue };
                     let t = Instant::now();
+                    let sent = out.sent();
                     let handled = stage.on_message(
                         Input {
                             id: InputId(i),
@@ -621,6 +627,14 @@ pub fn run_node<S: Stage>(
                             break;
                         }
                         other => other?,
+                    }
+                    // A stage that sends on one output moves the others' watermarks along
+                    // too: a consumer merging a busy output with a rare one (states with
+                    // trajectory snapshots) would otherwise wait on the rare one while the
+                    // busy one's queue fills, and a stage that never runs out of input (a
+                    // replay as fast as it goes) never makes the promise it makes when idle.
+                    if out.sent() > sent {
+                        out.advance_watermarks(pending_watermark(&inputs))?;
                     }
                     record(t);
                 }

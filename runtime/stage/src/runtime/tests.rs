@@ -190,3 +190,124 @@ fn a_payload_that_does_not_decode_is_counted_and_skipped() {
         vec![1, 3]
     );
 }
+
+/// Relays every input to `busy`, and every 20th to `rare` too, taking a while over each so
+/// that its input never runs dry (it never waits, so never promises anything when idle).
+#[derive(Debug)]
+struct Relay {
+    busy: Output<WheelOdometry>,
+    rare: Output<WheelOdometry>,
+    seen: u64,
+}
+
+impl Stage for Relay {
+    type Params = serde_json::Value;
+    const NAME: &'static str = "relay";
+    const ABOUT: &'static str = "test relay";
+    fn inputs() -> InputPorts {
+        InputPorts::Any
+    }
+    fn outputs(_: &Self::Params) -> Result<Vec<PortSpec>, ParamError> {
+        Ok(vec![
+            PortSpec::new("busy", WheelOdometry::TYPE_NAME),
+            PortSpec::new("rare", WheelOdometry::TYPE_NAME),
+        ])
+    }
+    fn create(_: Self::Params, ports: &Ports) -> Result<Self, StageError> {
+        Ok(Self {
+            busy: ports.output("busy")?,
+            rare: ports.output("rare")?,
+            seen: 0,
+        })
+    }
+    fn on_message(&mut self, input: Input<'_>, out: &mut Outputs) -> Result<(), StageError> {
+        std::thread::sleep(Duration::from_micros(200));
+        let odo: WheelOdometry = input.decode()?;
+        out.send(self.busy, &odo)?;
+        self.seen += 1;
+        if self.seen.is_multiple_of(20) {
+            out.send(self.rare, &odo)?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_consumer_of_a_busy_and_a_rare_output_of_a_stage_that_never_waits_does_not_stall() {
+    let stop = Arc::new(AtomicBool::new(false));
+    let bus = InProcess::new(stop.clone());
+    let output = |name: &str| OutputBinding {
+        name: name.to_owned(),
+        topic: format!("relay/{name}"),
+        msg_type: WheelOdometry::TYPE_NAME.to_owned(),
+        subscribers: 1,
+        required_subscribers: 1,
+        buffer: 4,
+        latest_only: false,
+    };
+    let relay = NodeSpec {
+        node: "relay".to_owned(),
+        stage: "relay".to_owned(),
+        outputs: vec![output("busy"), output("rare")],
+        // a deep input queue, filled at once by the source: the relay never runs dry
+        inputs: vec![InputBinding {
+            buffer: 256,
+            ..binding("in", None)
+        }],
+        ..collect_spec(Vec::new())
+    };
+    let sink = collect_spec(
+        ["busy", "rare"]
+            .iter()
+            .map(|name| InputBinding {
+                topic: format!("relay/{name}"),
+                ..binding(name, None)
+            })
+            .collect(),
+    );
+    let source_bus = bus.clone();
+    let source = std::thread::spawn(move || {
+        let topic = InputBinding {
+            buffer: 256,
+            ..binding("in", None)
+        }
+        .topic_config();
+        let mut out = Outbox::new(
+            source_bus.publisher(&topic).expect("publisher"),
+            WheelOdometry::TYPE_NAME,
+            1,
+        );
+        let never = || false;
+        bus::wait_for_subscribers(out.publisher(), 1, Duration::from_secs(5), &never).expect("handshake");
+        for s in 0..200 {
+            let msg = WheelOdometry {
+                header: Header::new(s * 10, "wheel"),
+                ..WheelOdometry::default()
+            };
+            out.send(&msg).expect("send");
+        }
+        out.end().expect("end");
+    });
+    let (relay_bus, relay_stop) = (bus.clone(), stop.clone());
+    let relay = std::thread::spawn(move || run_node::<Relay>(&relay, &relay_bus, &relay_stop).map(|r| r.sent));
+    let (done_tx, done_rx) = std::sync::mpsc::channel();
+    let (sink_bus, sink_stop) = (bus.clone(), stop.clone());
+    let sink = std::thread::spawn(move || {
+        SEEN.with(|s| s.borrow_mut().clear());
+        let report = run_node::<Collect>(&sink, &sink_bus, &sink_stop);
+        let _ = done_tx.send(());
+        report.map(|r| (r.received, SEEN.with(|s| s.borrow().len())))
+    });
+    let finished = done_rx.recv_timeout(Duration::from_secs(20)).is_ok();
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    source.join().expect("source");
+    let _ = relay.join().expect("relay");
+    let sunk = sink.join().expect("sink");
+    assert!(finished, "the sink stalled waiting on the rare output");
+    let (received, seen) = sunk.expect("sink runs");
+    assert_eq!(
+        received,
+        vec![("relay/busy".to_owned(), 200), ("relay/rare".to_owned(), 10)]
+    );
+    assert_eq!(seen, 210);
+}
