@@ -91,8 +91,15 @@ pub struct EstimateParams {
     /// start at 0 (default 1.0; 0: a level first state at the first sample).
     pub gravity_align_s: f64,
     /// Publish Trajectory and LineMap snapshots every this many states (default 10; 0: only
-    /// at the end). Each holds the whole trajectory: on long runs raise it.
+    /// at the end).
     pub snapshot_every_states: u64,
+    /// And only once the trajectory has grown by this fraction since the last snapshot
+    /// (default 0.05; 0: every `snapshot_every_states` states however long it is). Each
+    /// snapshot holds the whole trajectory, so at a fixed period their total size grows with
+    /// the square of the run's length (440 MB for a 20.9-minute run at 10 states per second);
+    /// growing the period with the trajectory keeps it linear (about 1 / fraction poses per
+    /// state: 20 by default).
+    pub snapshot_growth: f64,
     /// `fixed_lag` smoother: loop-closure full re-solves on a background thread (default
     /// true). `false` solves them in the update that needs one: slower, but the same input
     /// always gives the same output.
@@ -130,6 +137,7 @@ impl Default for EstimateParams {
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             gravity_align_s: o.gravity_align_s,
             snapshot_every_states: 10,
+            snapshot_growth: 0.05,
             background_solves: o.smoother.background,
             diagnostics: false,
         }
@@ -214,6 +222,7 @@ impl EstimateParams {
             ("registration_across_sigma_m", self.registration_across_sigma_m),
             ("registration_gate_m", self.registration_gate_m),
             ("registration_gate_growth_mps", self.registration_gate_growth_mps),
+            ("snapshot_growth", self.snapshot_growth),
         ];
         for (key, value) in off_or_positive {
             gprflow_params::non_negative(key, value)?;
@@ -247,6 +256,15 @@ pub struct EstimateStage {
     drops: Drops,
     /// Registrations dropped by `registration_gate_m`.
     gated_registrations: u64,
+    /// States in the trajectory at the last snapshot.
+    snapshot_states: u64,
+}
+
+/// A trajectory of `states` states is due a snapshot when the last one had `last` states.
+fn snapshot_due(states: u64, last: u64, params: &EstimateParams) -> bool {
+    params.snapshot_every_states > 0
+        && states.is_multiple_of(params.snapshot_every_states)
+        && states as f64 >= last as f64 * (1.0 + params.snapshot_growth)
 }
 
 fn pose_msg(p: &Pose3) -> Pose {
@@ -358,7 +376,9 @@ impl EstimateStage {
             gyro_bias: vec_msg(&s.bias.gyro_radps),
         };
         out.send(self.state_out, &msg)?;
-        if self.params.snapshot_every_states > 0 && (s.index + 1).is_multiple_of(self.params.snapshot_every_states) {
+        let states = s.index + 1;
+        if snapshot_due(states, self.snapshot_states, &self.params) {
+            self.snapshot_states = states;
             self.publish_snapshots(s.stamp_ns, out)?;
         }
         Ok(())
@@ -465,6 +485,7 @@ impl Stage for EstimateStage {
             unlocked_map_fixes: 0,
             drops: Drops::new(),
             gated_registrations: 0,
+            snapshot_states: 0,
         })
     }
 
@@ -616,6 +637,37 @@ impl Stage for EstimateStage {
 mod tests {
     use super::*;
     use nalgebra::Vector6;
+
+    /// The snapshots published over a run of `n` states: how many, and their poses in all.
+    fn snapshots(n: u64, params: &EstimateParams) -> (u64, u64) {
+        let (mut last, mut count, mut poses) = (0, 0, 0);
+        for states in 1..=n {
+            if snapshot_due(states, last, params) {
+                (last, count, poses) = (states, count + 1, poses + states);
+            }
+        }
+        (count, poses)
+    }
+
+    #[test]
+    fn snapshots_grow_linearly_with_the_run() {
+        let mut params = EstimateParams::default();
+        // Every 10 states while short: the sample runs' first 200 states as before.
+        assert_eq!(snapshots(200, &params).0, 20);
+        for n in [12_500, 37_500] {
+            let (count, poses) = snapshots(n, &params);
+            assert!(poses <= 22 * n, "{n} states: {count} snapshots of {poses} poses");
+            assert!(count >= 20 && count < 200, "{n} states: {count} snapshots");
+        }
+        // Without the growth: every 10 states, the square of the run.
+        params.snapshot_growth = 0.0;
+        let (count, poses) = snapshots(12_500, &params);
+        assert_eq!(count, 1250);
+        assert!(poses > 7_000_000, "{poses}");
+        // Off.
+        params.snapshot_every_states = 0;
+        assert_eq!(snapshots(1000, &params), (0, 0));
+    }
 
     #[test]
     fn covariance_reordering_is_its_own_inverse() {
