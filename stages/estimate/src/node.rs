@@ -49,6 +49,10 @@ pub struct EstimateParams {
     /// re-solve still converge over the run: on the 20.9-minute basement localisation run 1
     /// took 425 s against 650 s with the same ATE (docs/known-gaps.md).
     pub resolve_iterations: usize,
+    /// `fixed_lag` smoother: states between the starts of two whole-graph re-solves at least
+    /// (default 1: every update that brings a loop closure starts one). Closures in between
+    /// are solved with the window, against the older states as they are.
+    pub resolve_spacing_states: usize,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
     /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 2.28e-3).
@@ -120,6 +124,7 @@ impl Default for EstimateParams {
             lag_states: o.smoother.lag_states,
             marginalise: o.smoother.marginalise,
             resolve_iterations: o.smoother.full_solve.max_iterations,
+            resolve_spacing_states: o.smoother.resolve_spacing_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
             acc_bias_random_walk: o.imu.acc_bias_random_walk,
@@ -154,6 +159,7 @@ impl EstimateParams {
                 lag_states: self.lag_states,
                 background: self.background_solves,
                 marginalise: self.marginalise,
+                resolve_spacing_states: self.resolve_spacing_states,
                 full_solve: crate::batch::LmParams {
                     max_iterations: self.resolve_iterations,
                     ..SmootherParams::default().full_solve
@@ -192,6 +198,7 @@ impl EstimateParams {
         gprflow_params::positive("state_rate_hz", self.state_rate_hz)?;
         gprflow_params::at_least("lag_states", self.lag_states, 1)?;
         gprflow_params::at_least("resolve_iterations", self.resolve_iterations, 1)?;
+        gprflow_params::at_least("resolve_spacing_states", self.resolve_spacing_states, 1)?;
         let inc = &self.incremental;
         for (key, value) in [
             ("incremental.relinearize_rotation_rad", inc.relinearize_rotation_rad),
