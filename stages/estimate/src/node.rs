@@ -664,7 +664,7 @@ mod tests {
         for n in [12_500, 37_500] {
             let (count, poses) = snapshots(n, &params);
             assert!(poses <= 22 * n, "{n} states: {count} snapshots of {poses} poses");
-            assert!(count >= 20 && count < 200, "{n} states: {count} snapshots");
+            assert!((20..200).contains(&count), "{n} states: {count} snapshots");
         }
         // Without the growth: every 10 states, the square of the run.
         params.snapshot_growth = 0.0;
