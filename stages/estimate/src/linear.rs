@@ -11,6 +11,7 @@ use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::amd;
+use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 use faer::sparse::linalg::cholesky::{
     CholeskySymbolicParams, LltRef, SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering,
     factorize_symbolic_cholesky,
@@ -284,10 +285,7 @@ impl HessianStructure {
         };
         let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Upper, SymmetricOrdering::Identity, params)
             .map_err(|e| Error::LinearSolve(format!("symbolic: {e:?}")))?;
-        let SymbolicCholeskyRaw::Supernodal(supernodal) = symbolic.raw() else {
-            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
-        };
-        let plan = Arc::new(UpdatePlan::new(supernodal));
+        let plan = Arc::new(UpdatePlan::new(supernodal(&symbolic)?));
         Ok(Self {
             ordering,
             elimination_position,
@@ -357,6 +355,14 @@ impl HessianStructure {
     #[must_use]
     pub fn factor_nnz(&self) -> usize {
         self.symbolic.len_val()
+    }
+}
+
+/// The supernodal structure of a symbolic factorisation (the structures here force it).
+fn supernodal(symbolic: &SymbolicCholesky<usize>) -> Result<&SymbolicSupernodalCholesky<usize>> {
+    match symbolic.raw() {
+        SymbolicCholeskyRaw::Supernodal(s) => Ok(s),
+        SymbolicCholeskyRaw::Simplicial(_) => Err(Error::LinearSolve("symbolic: not supernodal".into())),
     }
 }
 
@@ -610,13 +616,10 @@ impl Factorization {
     /// # Errors
     /// [`Error::LinearSolve`] when the matrix is not positive definite.
     pub fn new(structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<Self> {
-        let SymbolicCholeskyRaw::Supernodal(supernodal) = structure.symbolic.raw() else {
-            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
-        };
         let mut f = Self {
             values: vec![0.0; structure.symbolic.len_val()],
             damped: Vec::with_capacity(hessian.len()),
-            work: Workspace::new(supernodal, &structure.plan),
+            work: Workspace::new(supernodal(&structure.symbolic)?, &structure.plan),
             symbolic: structure.symbolic.clone(),
             plan: structure.plan.clone(),
             dim: structure.dim,
@@ -642,11 +645,8 @@ impl Factorization {
                 self.damped[d] += lambda;
             }
         }
-        let SymbolicCholeskyRaw::Supernodal(supernodal) = self.symbolic.raw() else {
-            return Err(Error::LinearSolve("symbolic: not supernodal".into()));
-        };
         factorize(
-            supernodal,
+            supernodal(&self.symbolic)?,
             &self.plan,
             (&structure.col_ptr, &structure.row_idx, &self.damped),
             &mut self.values,
@@ -805,9 +805,7 @@ mod tests {
             );
             // A chain's elimination tree is a path: each supernode is updated by a few, not
             // by all of the supernodes before it.
-            let SymbolicCholeskyRaw::Supernodal(sn) = st.symbolic.raw() else {
-                panic!("supernodal")
-            };
+            let sn = supernodal(&st.symbolic).expect("supernodal");
             assert!(
                 st.plan.len() <= 4 * sn.n_supernodes(),
                 "n {n}: {} updates for {} supernodes",
