@@ -13,6 +13,7 @@
 //! the parabola through the best score and its two neighbours (an addition to the thesis,
 //! which stops at the column; `subpixel: false` gives its result).
 
+use crate::learned::Correlator;
 use crate::{Error, Result};
 
 /// Parameters of [`register`].
@@ -140,8 +141,20 @@ pub fn register(
     let cols = reference.cols as i64;
     let min_width = ((params.min_overlap * cols as f64).ceil() as i64).max(1);
     let max_shift = ((params.max_shift_m / reference.resolution_m).round() as i64).min(cols - min_width);
-    let curve: Vec<(i64, f64)> = (-max_shift..=max_shift)
-        .filter_map(|t| correlation_at(reference, query, t).map(|r| (t, r)))
+    // every shift at once: the column sums and the diagonal sums of the column cross products
+    // (`Correlator`), equal to `correlation_at` but for rounding
+    let curve: Vec<(i64, f64)> = Correlator::default()
+        .shift_curve(
+            reference.pixels,
+            query.pixels,
+            reference.rows,
+            reference.cols,
+            max_shift as usize,
+        )?
+        .iter()
+        .zip(-max_shift..=max_shift)
+        .filter(|(r, _)| !r.is_nan())
+        .map(|(&r, t)| (t, r))
         .collect();
     let Some(best) = (0..curve.len()).max_by(|&i, &j| curve[i].1.total_cmp(&curve[j].1)) else {
         return Ok(None);
@@ -252,6 +265,29 @@ mod tests {
         );
         // no shared region
         assert!(correlation_at(&view(&a), &view(&a), 200).is_none());
+    }
+
+    #[test]
+    fn the_curve_is_eq_4_2_at_every_shift_and_leaves_out_the_flat_ones() {
+        let reference = submap(0.5, 0.2, 1);
+        let mut query = submap(0.9, 0.2, 2);
+        // the query flat in its right half: the shifts that share only that half have no
+        // structure in it
+        for row in query.chunks_exact_mut(200) {
+            row[100..].fill(3.0);
+        }
+        let m = register(&view(&reference), &view(&query), &EngineeredParams::default())
+            .expect("valid")
+            .expect("a match");
+        let direct: Vec<(i64, f64)> = (-100..=100)
+            .filter_map(|t| correlation_at(&view(&reference), &view(&query), t).map(|r| (t, r)))
+            .collect();
+        assert_eq!(direct.len(), 200, "one shift is flat");
+        assert_eq!(m.curve.len(), direct.len());
+        for (&(t, r), &(t_direct, r_direct)) in m.curve.iter().zip(&direct) {
+            assert_eq!(t, t_direct);
+            assert!((r - r_direct).abs() < 1e-9, "shift {t}: {r} against {r_direct}");
+        }
     }
 
     #[test]

@@ -136,7 +136,7 @@ impl Correlator {
         };
         let mut values = vec![0.0; 2 * channels];
         for k in 0..channels {
-            self.channel(reference.channel(k), query.channel(k), shape);
+            self.channel(reference.channel(k), query.channel(k), shape, 0.0);
             // a NaN or infinite feature makes its channel's sum of squares so (finite f32 values
             // cannot overflow it)
             let (r_squares, q_squares) = (self.prefix[2 * w + 1], self.prefix[4 * w + 3]);
@@ -157,25 +157,27 @@ impl Correlator {
 }
 
 impl Correlator {
-    /// `r(T)` of one channel (`r`, `q`: `h x w`, row-major) into `self.curve`, its column
-    /// prefix sums left in `self.prefix`. Uses AVX2 and FMA where the CPU has them (fused
+    /// `r(T)` of one channel (`r`, `q`: `h x w`, row-major) into `self.curve` (`flat` where the
+    /// shared block is flat in either), its column prefix sums left in `self.prefix`. Uses AVX2 and FMA where the CPU has them (fused
     /// multiply-adds: the result may differ from the portable one in the last bit).
-    fn channel(&mut self, r: &[f32], q: &[f32], shape: ChannelShape) {
+    fn channel(&mut self, r: &[f32], q: &[f32], shape: ChannelShape, flat: f64) {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU has AVX2 and FMA, checked just above.
-            unsafe { self.channel_avx2(r, q, shape) };
+            unsafe { self.channel_avx2(r, q, shape, flat) };
             return;
         }
-        self.channel_with(r, q, shape, |rp, qp, s, out| {
+        self.channel_with(r, q, shape, flat, |rp, qp, s, out| {
             shifted_products(rp, qp, s, out, |a, b, c| a * b + c)
         });
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    fn channel_avx2(&mut self, r: &[f32], q: &[f32], shape: ChannelShape) {
-        self.channel_with(r, q, shape, |rp, qp, s, out| shifted_products_avx2(rp, qp, s, out));
+    fn channel_avx2(&mut self, r: &[f32], q: &[f32], shape: ChannelShape, flat: f64) {
+        self.channel_with(r, q, shape, flat, |rp, qp, s, out| {
+            shifted_products_avx2(rp, qp, s, out)
+        });
     }
 
     /// [`Correlator::channel`] with `products` for [`shifted_products`].
@@ -185,6 +187,7 @@ impl Correlator {
         r: &[f32],
         q: &[f32],
         shape: ChannelShape,
+        flat: f64,
         products: impl Fn(&[f64], &[f64], ChannelShape, &mut [f64]),
     ) {
         let w = shape.w;
@@ -206,7 +209,41 @@ impl Correlator {
             self.products[x] += sum;
         }
         let tried = &self.products[first..first + 2 * shape.t_max + 1];
-        channel_curve(shape, tried, &self.prefix, &mut self.curve);
+        channel_curve(shape, tried, &self.prefix, flat, &mut self.curve);
+    }
+
+    /// `r(T)` of one pair of `rows x cols` images (row-major; the engineered method's eq. 4.2
+    /// on two submaps) for every shift `T` in `-t_max..=t_max`, in increasing shift; NaN where
+    /// the shared block is flat in either image. `t_max` is at most `cols - 1`.
+    ///
+    /// # Errors
+    /// Images that are not `rows x cols`, or `t_max` past the last column.
+    pub fn shift_curve(
+        &mut self,
+        reference: &[f32],
+        query: &[f32],
+        rows: usize,
+        cols: usize,
+        t_max: usize,
+    ) -> Result<&[f64]> {
+        if rows == 0 || cols == 0 || reference.len() != rows * cols || query.len() != rows * cols || t_max >= cols {
+            return Err(Error::Shape(format!(
+                "images of {} and {} pixels for {rows} x {cols}, shifts to {t_max}",
+                reference.len(),
+                query.len()
+            )));
+        }
+        self.channel(
+            reference,
+            query,
+            ChannelShape {
+                h: rows,
+                w: cols,
+                t_max,
+            },
+            f64::NAN,
+        );
+        Ok(&self.curve)
     }
 }
 
@@ -290,8 +327,8 @@ fn prepare_channel<const W: usize, const REVERSED: bool>(
 
 /// `r(T)` for `T` in `-t_max..=t_max` of one channel into `curve`, from `products` (`Σ AB` per
 /// shift) and `prefix` (reference sums, reference squares, query sums, query squares, as
-/// [`prepare_channel`] leaves them).
-fn channel_curve(shape: ChannelShape, products: &[f64], prefix: &[f64], curve: &mut Vec<f64>) {
+/// [`prepare_channel`] leaves them); `flat_value` where either block is flat.
+fn channel_curve(shape: ChannelShape, products: &[f64], prefix: &[f64], flat_value: f64, curve: &mut Vec<f64>) {
     let ChannelShape { h, w, t_max } = shape;
     let (pr, rest) = prefix.split_at(w + 1);
     let (prr, rest) = rest.split_at(w + 1);
@@ -310,7 +347,7 @@ fn channel_curve(shape: ChannelShape, products: &[f64], prefix: &[f64], curve: &
         let var_b = sbb - sb * sb / count;
         let flat = |var: f64, sq: f64| var <= FLAT_VARIANCE_FRACTION * sq;
         let corr = if flat(var_a, saa) || flat(var_b, sbb) {
-            0.0
+            flat_value
         } else {
             (sab - sa * sb / count) / (var_a.sqrt() * var_b.sqrt())
         };
@@ -550,9 +587,9 @@ mod tests {
         let (r, q) = (features(1, h, w, 11), features(1, h, w, 12));
         let shape = ChannelShape { h, w, t_max: 17 };
         let mut corr = Correlator::default();
-        corr.channel(&r.data, &q.data, shape);
+        corr.channel(&r.data, &q.data, shape, 0.0);
         let dispatched = corr.curve.clone();
-        corr.channel_with(&r.data, &q.data, shape, |rp, qp, s, out| {
+        corr.channel_with(&r.data, &q.data, shape, 0.0, |rp, qp, s, out| {
             shifted_products(rp, qp, s, out, |a, b, c| a * b + c)
         });
         assert_eq!(dispatched.len(), 2 * 17 + 1);
