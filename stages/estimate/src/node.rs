@@ -53,6 +53,10 @@ pub struct EstimateParams {
     /// (default 1: every update that brings a loop closure starts one). Closures in between
     /// are solved with the window, against the older states as they are.
     pub resolve_spacing_states: usize,
+    /// `fixed_lag` smoother: the newest states each re-solve solves, the older ones held at
+    /// their estimate (default 0: the whole graph). Bounds a re-solve's cost on long runs; the
+    /// end-of-run solve is always of the whole graph.
+    pub resolve_window_states: usize,
     /// Accelerometer noise density, (m/s^2)/sqrt(Hz) (default 8.27e-3, the thesis rig's XSENS MTi-30).
     pub acc_noise_density: f64,
     /// Gyroscope noise density, (rad/s)/sqrt(Hz) (default 2.28e-3).
@@ -125,6 +129,7 @@ impl Default for EstimateParams {
             marginalise: o.smoother.marginalise,
             resolve_iterations: o.smoother.full_solve.max_iterations,
             resolve_spacing_states: o.smoother.resolve_spacing_states,
+            resolve_window_states: o.smoother.resolve_window_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
             acc_bias_random_walk: o.imu.acc_bias_random_walk,
@@ -160,6 +165,7 @@ impl EstimateParams {
                 background: self.background_solves,
                 marginalise: self.marginalise,
                 resolve_spacing_states: self.resolve_spacing_states,
+                resolve_window_states: self.resolve_window_states,
                 full_solve: crate::batch::LmParams {
                     max_iterations: self.resolve_iterations,
                     ..SmootherParams::default().full_solve

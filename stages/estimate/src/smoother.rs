@@ -92,6 +92,11 @@ pub struct SmootherParams {
     /// closure starts one at the next update). Closures that arrive in between are solved
     /// with the window against the states behind it, and the next re-solve takes them all.
     pub resolve_spacing_states: usize,
+    /// States a re-solve solves, the newest ones (default 0: the whole graph). Older states
+    /// are held at their estimate, as the window holds the states behind it, so a re-solve
+    /// costs this many states however long the run. The end-of-run solve
+    /// ([`FixedLagSmoother::finish`]) solves the whole graph whatever this is.
+    pub resolve_window_states: usize,
 }
 
 impl Default for SmootherParams {
@@ -109,6 +114,7 @@ impl Default for SmootherParams {
             newest_covariance: true,
             marginalise: false,
             resolve_spacing_states: 1,
+            resolve_window_states: 0,
         }
     }
 }
@@ -417,14 +423,43 @@ impl FixedLagSmoother {
         Ok(report)
     }
 
+    /// The graph a re-solve solves and its free variables: the whole graph, or with
+    /// [`SmootherParams::resolve_window_states`] the newest states, the variables of no state
+    /// that their factors reach (map lines), and every factor on any of them (the older states
+    /// those reach held at their estimate).
+    fn resolve_problem(&self, graph: &FactorGraph, values: &Values) -> (FactorGraph, Ordering) {
+        let window = self.params.resolve_window_states;
+        if window == 0 || window >= self.states.len() {
+            return (graph.clone(), Ordering::all(values));
+        }
+        let mut free: Vec<VarId> = self.states[self.states.len() - window..]
+            .iter()
+            .flatten()
+            .copied()
+            .collect();
+        let of = |vars: &[VarId]| -> BTreeSet<usize> {
+            vars.iter().flat_map(|v| self.factors_of[v.0].iter().copied()).collect()
+        };
+        let globals: BTreeSet<VarId> = of(&free)
+            .into_iter()
+            .flat_map(|f| graph.factors()[f].keys().iter().copied())
+            .filter(|k| self.state_of.get(k.0).copied().flatten().is_none())
+            .collect();
+        free.extend(globals);
+        let mut local = FactorGraph::new();
+        for f in of(&free) {
+            local.add_shared(graph.factors()[f].clone());
+        }
+        (local, Ordering::free(values, &free))
+    }
+
     fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values) {
-        let snapshot_graph = graph.clone();
+        let (snapshot_graph, ordering) = self.resolve_problem(graph, values);
         let mut snapshot_values = values.clone();
         let params = self.params.full_solve;
         let (tx, rx) = mpsc::sync_channel(1);
         let job = move || {
             let all: Vec<usize> = (0..snapshot_graph.len()).collect();
-            let ordering = Ordering::all(&snapshot_values);
             let r = levenberg_marquardt(
                 &snapshot_graph,
                 &all,
@@ -713,51 +748,82 @@ mod tests {
         assert!((&with - &without).norm() < 1e-6 * without.norm(), "{with} vs {without}");
     }
 
-    #[test]
-    fn re_solves_are_spaced_and_the_closures_between_wait_for_the_next() {
+    /// What a fixed-lag run on a pose chain whose odometry is 5 % long, with a loop closure
+    /// from every state past the 12th to the state 10 before it (behind the 4-state window),
+    /// did: the states whose update started a re-solve, the states each such update moved, and
+    /// the values after the final solve.
+    fn closure_chain(spacing: usize, resolve_window: usize) -> (Vec<usize>, Vec<Vec<usize>>, Values) {
         use crate::factors::{BetweenPose, PosePrior};
         use crate::lie::Pose3;
-        // A pose chain whose odometry is 5 % long, with a loop closure from every state past
-        // the 12th to the state 10 before it (behind the 4-state window).
-        let run = |spacing: usize| {
-            let mut smoother = FixedLagSmoother::new(SmootherParams {
-                method: SmootherMethod::FixedLag,
-                lag_states: 4,
-                background: false,
-                resolve_spacing_states: spacing,
-                ..SmootherParams::default()
+        let mut smoother = FixedLagSmoother::new(SmootherParams {
+            method: SmootherMethod::FixedLag,
+            lag_states: 4,
+            background: false,
+            resolve_spacing_states: spacing,
+            resolve_window_states: resolve_window,
+            ..SmootherParams::default()
+        });
+        let (mut graph, mut values) = (FactorGraph::new(), Values::new());
+        let noise = NoiseModel::isotropic(6, 0.05).expect("noise");
+        let step = |scale: f64| Pose3::exp(&Vector6::new(0.0, 0.0, 0.1, scale, 0.0, 0.0));
+        let (mut ids, mut started, mut moved): (Vec<VarId>, Vec<usize>, Vec<Vec<usize>>) = Default::default();
+        for k in 0..40 {
+            let guess = ids.last().map_or(Pose3::identity(), |p| {
+                values.pose(*p).expect("pose").compose(&step(1.05))
             });
-            let (mut graph, mut values) = (FactorGraph::new(), Values::new());
-            let noise = NoiseModel::isotropic(6, 0.05).expect("noise");
-            let step = |scale: f64| Pose3::exp(&Vector6::new(0.0, 0.0, 0.1, scale, 0.0, 0.0));
-            let (mut ids, mut started): (Vec<VarId>, Vec<usize>) = (Vec::new(), Vec::new());
-            for k in 0..40 {
-                let guess = ids.last().map_or(Pose3::identity(), |p| {
-                    values.pose(*p).expect("pose").compose(&step(1.05))
-                });
-                let id = values.push(Variable::Pose(guess));
-                match ids.last() {
-                    None => graph.add(PosePrior::new(id, Pose3::identity(), noise.clone()).expect("f")),
-                    Some(p) => graph.add(BetweenPose::new(*p, id, step(1.05), noise.clone()).expect("f")),
-                };
-                if k > 12 {
-                    let truth = (0..10).fold(Pose3::identity(), |acc, _| acc.compose(&step(1.0)));
-                    graph.add(BetweenPose::new(ids[k - 10], id, truth, noise.clone()).expect("f"));
-                }
-                ids.push(id);
-                if smoother
-                    .update(&graph, &mut values, &[id])
-                    .expect("update")
-                    .started_full_solve
-                {
-                    started.push(k);
-                }
+            let id = values.push(Variable::Pose(guess));
+            match ids.last() {
+                None => graph.add(PosePrior::new(id, Pose3::identity(), noise.clone()).expect("f")),
+                Some(p) => graph.add(BetweenPose::new(*p, id, step(1.05), noise.clone()).expect("f")),
+            };
+            if k > 12 {
+                let truth = (0..10).fold(Pose3::identity(), |acc, _| acc.compose(&step(1.0)));
+                graph.add(BetweenPose::new(ids[k - 10], id, truth, noise.clone()).expect("f"));
             }
-            smoother.finish(&graph, &mut values).expect("finish");
-            (started, values)
-        };
-        let (every, at_one) = run(1);
-        let (spaced, at_ten) = run(10);
+            ids.push(id);
+            let before = values.clone();
+            if smoother
+                .update(&graph, &mut values, &[id])
+                .expect("update")
+                .started_full_solve
+            {
+                started.push(k);
+                moved.push(
+                    (0..k)
+                        .filter(|&i| values.get(ids[i]).expect("pose") != before.get(ids[i]).expect("pose"))
+                        .collect(),
+                );
+            }
+        }
+        smoother.finish(&graph, &mut values).expect("finish");
+        (started, moved, values)
+    }
+
+    #[test]
+    fn a_re_solve_window_holds_the_states_before_it_and_the_final_solve_is_the_same() {
+        let (started, moved, whole) = closure_chain(1, 0);
+        let (started_w, moved_w, windowed) = closure_chain(1, 10);
+        assert_eq!(started, started_w);
+        for ((k, all), window) in started.iter().zip(&moved).zip(&moved_w) {
+            // a re-solve of the whole graph moves states older than the newest 10; with the
+            // window, none of them moves (the update's state `k` is the newest, its re-solve
+            // frees `k - 9 ..= k`)
+            assert!(all.iter().any(|&i| i + 10 <= *k), "state {k}: {all:?}");
+            assert!(window.iter().all(|&i| i + 10 > *k), "state {k}: {window:?}");
+            assert!(!window.is_empty(), "state {k}");
+        }
+        for (a, b) in whole.as_slice().iter().zip(windowed.as_slice()) {
+            let (Variable::Pose(a), Variable::Pose(b)) = (a, b) else {
+                panic!("poses")
+            };
+            assert!(a.local(b).norm() < 1e-5, "{a:?} vs {b:?}");
+        }
+    }
+
+    #[test]
+    fn re_solves_are_spaced_and_the_closures_between_wait_for_the_next() {
+        let (every, _, at_one) = closure_chain(1, 0);
+        let (spaced, _, at_ten) = closure_chain(10, 0);
         assert_eq!(every, (13..40).collect::<Vec<_>>());
         // The first closure re-solves at once, the next ones at least 10 states later.
         assert_eq!(spaced, vec![13, 23, 33]);
