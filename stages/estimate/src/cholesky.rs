@@ -135,7 +135,8 @@ pub(crate) struct NonPositivePivot {
 }
 
 /// Factorises the symmetric matrix whose lower triangle is `(col_ptr, row_idx, values)`
-/// (compressed columns, the structure `symbolic` was made for, no permutation) into
+/// (compressed columns, the structure `symbolic` was made for, no permutation) plus `lambda`
+/// on its diagonal (damping, added as the values are scattered: no damped copy) into
 /// `l_values`, in faer's supernodal layout (each supernode's columns, diagonal block first,
 /// column-major).
 ///
@@ -145,6 +146,7 @@ pub(crate) fn factorize(
     symbolic: &SymbolicSupernodalCholesky<usize>,
     plan: &UpdatePlan,
     (col_ptr, row_idx, values): (&[usize], &[usize], &[f64]),
+    lambda: f64,
     l_values: &mut [f64],
     work: &mut Workspace,
 ) -> Result<(), NonPositivePivot> {
@@ -169,8 +171,10 @@ pub(crate) fn factorize(
             let col = &mut ls[(j - s_start) * nrows..][..nrows];
             for k in col_ptr[j]..col_ptr[j + 1] {
                 let i = row_idx[k];
-                if i >= j {
+                if i > j {
                     col[local(i, g2l)] += values[k];
+                } else if i == j {
+                    col[local(i, g2l)] += values[k] + lambda;
                 }
             }
         }

@@ -596,7 +596,6 @@ pub struct Factorization {
     symbolic: Arc<SymbolicCholesky<usize>>,
     plan: Arc<UpdatePlan>,
     values: Vec<f64>,
-    damped: Vec<f64>,
     work: Workspace,
     dim: usize,
 }
@@ -618,7 +617,6 @@ impl Factorization {
     pub fn new(structure: &HessianStructure, hessian: &[f64], lambda: f64) -> Result<Self> {
         let mut f = Self {
             values: vec![0.0; structure.symbolic.len_val()],
-            damped: Vec::with_capacity(hessian.len()),
             work: Workspace::new(supernodal(&structure.symbolic)?, &structure.plan),
             symbolic: structure.symbolic.clone(),
             plan: structure.plan.clone(),
@@ -638,17 +636,11 @@ impl Factorization {
             *self = Self::new(structure, hessian, lambda)?;
             return Ok(());
         }
-        self.damped.clear();
-        self.damped.extend_from_slice(hessian);
-        if lambda != 0.0 {
-            for &d in &structure.diag {
-                self.damped[d] += lambda;
-            }
-        }
         factorize(
             supernodal(&self.symbolic)?,
             &self.plan,
-            (&structure.col_ptr, &structure.row_idx, &self.damped),
+            (&structure.col_ptr, &structure.row_idx, hessian),
+            lambda,
             &mut self.values,
             &mut self.work,
         )
