@@ -6,12 +6,13 @@
 # are made on demand by the simulator (basement world; `long` is its 20.9-minute run, `hour`
 # its 62.7-minute run, the 5-minute one is `long` cut with --duration).
 #
-# usage: tools/bench/scale.sh [GRAPH:MINUTES ...]
+# usage: tools/bench/scale.sh [GRAPH:MINUTES[:VAR=VALUE,...] ...]
 #   default: submaps:5 submaps:20 submaps:60 odometry:5 odometry:20 odometry:60 localize:5 localize:20
-#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam); MINUTES is 5, 20 or 60.
+#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam); MINUTES is 5, 20 or 60;
+#   VAR=VALUE pairs are graph variables set for that run (e.g. localize:60:resolve_window=4000).
 #   submaps runs with a submap every 0.5 m (its default 0.02 m is for pictures). The
 #   localisation graph's 20-minute run takes about 9 minutes (its loop-closure re-solves).
-# Results: out/bench/scale/{GRAPH}-{MINUTES}min.json (launch reports) and table.md.
+# Results: out/bench/scale/{GRAPH}-{MINUTES}min[-VAR=VALUE,...].json (launch reports) and table.md.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 out=out/bench/scale
@@ -39,15 +40,17 @@ recording() {
 }
 
 for run in "${runs[@]}"; do
-    graph=${run%%:*}
-    minutes=${run##*:}
+    IFS=: read -r graph minutes vars <<< "$run"
+    name="$graph-${minutes}min${vars:+-$vars}"
     rec=$(recording "$minutes")
     sets=(--set "recording=$rec")
     if [ "$graph" = submaps ]; then sets+=(--set spacing_m=0.5); fi
-    echo "== $graph on $rec" >&2
+    IFS=, read -r -a pairs <<< "$vars"
+    for pair in "${pairs[@]}"; do sets+=(--set "$pair"); done
+    echo "== $graph on $rec ${vars}" >&2
     "$gprflow" launch "graphs/$graph.yaml" "${sets[@]}" --log info \
-        --report "$out/$graph-${minutes}min.json" 2> "$out/$graph-${minutes}min.log" \
-        || { echo "$graph on $rec failed: see $out/$graph-${minutes}min.log" >&2; exit 1; }
+        --report "$out/$name.json" 2> "$out/$name.log" \
+        || { echo "$graph on $rec failed: see $out/$name.log" >&2; exit 1; }
 done
 
 python3 - "$out" "${runs[@]}" <<'PY' | tee "$out/table.md"
@@ -56,8 +59,9 @@ out, runs = sys.argv[1], sys.argv[2:]
 print("| graph | sensor min | wall s | x real time | process | CPU share | p50 us | p99 us | peak RSS MiB |")
 print("|---|---:|---:|---:|---|---:|---:|---:|---:|")
 for run in runs:
-    graph, minutes = run.split(":")
-    rep = json.load(open(f"{out}/{graph}-{minutes}min.json"))
+    graph, minutes, *vars = run.split(":")
+    rep = json.load(open(f"{out}/{graph}-{minutes}min{''.join('-' + v for v in vars)}.json"))
+    graph += "".join(f" ({v})" for v in vars)
     sim = json.load(open(f"{out}/basement-{minutes}min.mcap.json"))
     sensor_s = sim["duration_s"]
     nodes = [n for n in rep["nodes"] if n["report"]]
