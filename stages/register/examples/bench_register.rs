@@ -16,7 +16,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use gprflow_register::engineered::SubmapView;
+use gprflow_register::SubmapView;
 use gprflow_register::front_end::FrontEndScratch;
 use gprflow_register::learned::{Features, Model};
 

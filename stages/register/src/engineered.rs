@@ -14,7 +14,7 @@
 //! which stops at the column; `subpixel: false` gives its result).
 
 use crate::learned::Correlator;
-use crate::{Error, Result};
+use crate::{Error, Result, SubmapView};
 
 /// Parameters of [`register`].
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
@@ -48,36 +48,6 @@ pub struct AlongTrackMatch {
     pub score: f64,
     /// `(shift in columns, r)` for every shift tried, in increasing shift.
     pub curve: Vec<(i64, f64)>,
-}
-
-/// A submap image: `rows x cols`, row-major, columns `resolution_m` apart.
-#[derive(Debug, Clone, Copy)]
-pub struct SubmapView<'a> {
-    /// Pixels, `pixels[row * cols + col]`.
-    pub pixels: &'a [f32],
-    /// Rows (samples per column).
-    pub rows: usize,
-    /// Columns.
-    pub cols: usize,
-    /// Along-track size of a column, m.
-    pub resolution_m: f64,
-}
-
-impl SubmapView<'_> {
-    pub(crate) fn check(&self, what: &str) -> Result<()> {
-        if self.rows == 0 || self.cols == 0 || self.pixels.len() != self.rows * self.cols {
-            return Err(Error::Shape(format!(
-                "{what}: {} pixels for {} x {}",
-                self.pixels.len(),
-                self.rows,
-                self.cols
-            )));
-        }
-        if !(self.resolution_m.is_finite() && self.resolution_m > 0.0) {
-            return Err(Error::Shape(format!("{what}: resolution {} m", self.resolution_m)));
-        }
-        Ok(())
-    }
 }
 
 /// `r(T)` of eq. 4.2 for the query shifted `shift` columns over the reference; `None` when the

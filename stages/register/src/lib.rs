@@ -25,6 +25,36 @@ pub mod stretch;
 
 pub use gprflow_params::ParamError;
 
+/// A submap image: `rows x cols`, row-major, columns `resolution_m` apart.
+#[derive(Debug, Clone, Copy)]
+pub struct SubmapView<'a> {
+    /// Pixels, `pixels[row * cols + col]`.
+    pub pixels: &'a [f32],
+    /// Rows (samples per column).
+    pub rows: usize,
+    /// Columns.
+    pub cols: usize,
+    /// Along-track size of a column, m.
+    pub resolution_m: f64,
+}
+
+impl SubmapView<'_> {
+    pub(crate) fn check(&self, what: &str) -> Result<()> {
+        if self.rows == 0 || self.cols == 0 || self.pixels.len() != self.rows * self.cols {
+            return Err(Error::Shape(format!(
+                "{what}: {} pixels for {} x {}",
+                self.pixels.len(),
+                self.rows,
+                self.cols
+            )));
+        }
+        if !(self.resolution_m.is_finite() && self.resolution_m > 0.0) {
+            return Err(Error::Shape(format!("{what}: resolution {} m", self.resolution_m)));
+        }
+        Ok(())
+    }
+}
+
 /// What can go wrong in this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {

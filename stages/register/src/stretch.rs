@@ -7,7 +7,7 @@
 //! features share most with the reference (docs/localisation.md).
 
 use crate::Result;
-use crate::engineered::SubmapView;
+use crate::SubmapView;
 
 /// Largest relative stretch accepted (`|factor - 1|`): beyond it a submap's lower rows would
 /// come from outside the image for most of its depth.

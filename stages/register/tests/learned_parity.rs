@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use common::{ort_library, read_f32, repo_root};
 use gprflow_register::Error;
-use gprflow_register::engineered::SubmapView;
+use gprflow_register::SubmapView;
 use gprflow_register::learned::{CorrelationParams, Correlator, Encoder, Features, Head, Model, correlate};
 use serde_json::Value;
 

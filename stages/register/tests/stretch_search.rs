@@ -8,7 +8,7 @@
 mod common;
 
 use common::{ort_library, read_f32, repo_root};
-use gprflow_register::engineered::SubmapView;
+use gprflow_register::SubmapView;
 use gprflow_register::learned::{Features, Model};
 use gprflow_register::stretch::{factors, stretch_rows};
 

@@ -11,9 +11,9 @@
 use gprflow_geometry::Track;
 
 use super::{Counts, Keyed, Method};
-use crate::engineered::{EngineeredParams, SubmapView, register as engineered_register};
+use crate::engineered::{EngineeredParams, register as engineered_register};
 use crate::learned::{Features, Model, Refusal};
-use crate::{Error, Result, stretch};
+use crate::{Error, Result, SubmapView, stretch};
 
 /// What a matcher may look at besides the two submaps.
 #[derive(Debug, Clone, Copy)]

@@ -24,8 +24,8 @@ use std::collections::VecDeque;
 use gprflow_geometry::{NonFinitePose, Planar, Track};
 
 use crate::Result;
+use crate::SubmapView;
 use crate::candidates::{Anchor, CandidateGates, Placed, ReferenceIndex, candidates};
-use crate::engineered::SubmapView;
 use crate::learned::Features;
 use store::PixelSpill;
 

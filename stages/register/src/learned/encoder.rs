@@ -8,7 +8,7 @@ use ort::session::Session;
 use ort::value::TensorRef;
 
 use super::runtime::{onnxruntime_library, runtime};
-use crate::engineered::SubmapView;
+use crate::SubmapView;
 use crate::front_end::{FRONT_END_ITERATIONS_KEY, FRONT_END_KEY, FrontEnd, FrontEndScratch};
 use crate::{Error, Result};
 

@@ -30,7 +30,7 @@ pub use runtime::{ONNXRUNTIME_ENV, ONNXRUNTIME_LIBRARY, OnnxRuntimeLibrary, onnx
 
 use std::path::Path;
 
-use crate::engineered::SubmapView;
+use crate::SubmapView;
 use crate::{Error, Result};
 
 /// A registration by the learned model.
