@@ -757,6 +757,7 @@ mod tests {
 
     #[test]
     fn supernodal_factor_is_faers_and_visits_only_the_updating_supernodes() {
+        let mut widths = Vec::new();
         for (n, every, back) in [(3, 5, 2), (400, 1000, 1), (400, 7, 50), (400, 3, 397)] {
             let (graph, values) = chain_with_closures(n, every, back);
             let all: Vec<usize> = (0..graph.len()).collect();
@@ -785,9 +786,25 @@ mod tests {
                     Default::default(),
                 )
                 .expect("faer");
+            // The factors' lower triangles (faer leaves other values above the diagonal of a
+            // supernode's diagonal block; its solve reads only the lower one).
+            let sn = supernodal(&st.symbolic).expect("supernodal");
+            let lower = |values: &[f64]| {
+                let mut values = values.to_vec();
+                let (begin, end, at) = (sn.supernode_begin(), sn.supernode_end(), sn.col_ptr_for_val());
+                for s in 0..sn.n_supernodes() {
+                    let ncols = end[s] - begin[s];
+                    let nrows = (at[s + 1] - at[s]) / ncols;
+                    for j in 0..ncols {
+                        values[at[s] + j * nrows..][..j].fill(0.0);
+                    }
+                }
+                values
+            };
+            widths.extend((0..sn.n_supernodes()).map(|s| sn.supernode_end()[s] - sn.supernode_begin()[s]));
+            let (ours_lower, theirs) = (lower(&ours.values), lower(&theirs));
             let scale = theirs.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-            let worst = ours
-                .values
+            let worst = ours_lower
                 .iter()
                 .zip(&theirs)
                 .fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
@@ -795,9 +812,27 @@ mod tests {
                 worst <= 1e-12 * scale,
                 "n {n}: L differs by {worst} (largest entry {scale})"
             );
+            // faer's solve on our factor solves the damped system.
+            let rhs: Vec<f64> = (0..st.dim).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+            let mut x = rhs.clone();
+            ours.solve_in_place(&mut x);
+            let mut back = vec![0.0; st.dim];
+            // the lower triangle (the values also hold the upper one of each variable's block)
+            for j in 0..st.dim {
+                for k in st.col_ptr[j]..st.col_ptr[j + 1] {
+                    let i = st.row_idx[k];
+                    if i >= j {
+                        back[i] += damped[k] * x[j];
+                    }
+                    if i > j {
+                        back[j] += damped[k] * x[i];
+                    }
+                }
+            }
+            let residual = back.iter().zip(&rhs).fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(residual < 1e-6, "n {n}: residual {residual}");
             // A chain's elimination tree is a path: each supernode is updated by a few, not
             // by all of the supernodes before it.
-            let sn = supernodal(&st.symbolic).expect("supernodal");
             assert!(
                 st.plan.len() <= 4 * sn.n_supernodes(),
                 "n {n}: {} updates for {} supernodes",
@@ -805,6 +840,9 @@ mod tests {
                 sn.n_supernodes()
             );
         }
+        // both kernels: the small one and faer's for wider supernodes
+        let small = crate::cholesky::SMALL_COLUMNS;
+        assert!(widths.iter().any(|&w| w <= small) && widths.iter().any(|&w| w > small));
     }
 
     #[test]
