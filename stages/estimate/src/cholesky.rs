@@ -283,7 +283,7 @@ fn small_panel_cholesky_with(
             }
         }
         let pivot = col[0];
-        if !(pivot > 0.0) {
+        if pivot.is_nan() || pivot <= 0.0 {
             return Err(j);
         }
         let d = pivot.sqrt();
