@@ -819,13 +819,13 @@ mod tests {
             let mut back = vec![0.0; st.dim];
             // the lower triangle (the values also hold the upper one of each variable's block)
             for j in 0..st.dim {
-                for k in st.col_ptr[j]..st.col_ptr[j + 1] {
-                    let i = st.row_idx[k];
+                let column = st.col_ptr[j]..st.col_ptr[j + 1];
+                for (&i, &h) in st.row_idx[column.clone()].iter().zip(&damped[column]) {
                     if i >= j {
-                        back[i] += damped[k] * x[j];
+                        back[i] += h * x[j];
                     }
                     if i > j {
-                        back[j] += damped[k] * x[i];
+                        back[j] += h * x[i];
                     }
                 }
             }
