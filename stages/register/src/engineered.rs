@@ -97,6 +97,20 @@ pub fn register(
     query: &SubmapView<'_>,
     params: &EngineeredParams,
 ) -> Result<Option<AlongTrackMatch>> {
+    register_with(&mut Correlator::default(), reference, query, params)
+}
+
+/// [`register`] with `correlator`'s buffers, reused from call to call (a loop closer matches
+/// every query with several references).
+///
+/// # Errors
+/// As [`register`].
+pub fn register_with(
+    correlator: &mut Correlator,
+    reference: &SubmapView<'_>,
+    query: &SubmapView<'_>,
+    params: &EngineeredParams,
+) -> Result<Option<AlongTrackMatch>> {
     reference.check("reference")?;
     query.check("query")?;
     if (reference.rows, reference.cols) != (query.rows, query.cols)
@@ -113,7 +127,7 @@ pub fn register(
     let max_shift = ((params.max_shift_m / reference.resolution_m).round() as i64).min(cols - min_width);
     // every shift at once: the column sums and the diagonal sums of the column cross products
     // (`Correlator`), equal to `correlation_at` but for rounding
-    let curve: Vec<(i64, f64)> = Correlator::default()
+    let curve: Vec<(i64, f64)> = correlator
         .shift_curve(
             reference.pixels,
             query.pixels,

@@ -11,8 +11,8 @@
 use gprflow_geometry::Track;
 
 use super::{Counts, Keyed, Method};
-use crate::engineered::{EngineeredParams, register as engineered_register};
-use crate::learned::{Features, Model, Refusal};
+use crate::engineered::{EngineeredParams, register_with as engineered_register};
+use crate::learned::{Correlator, Features, Model, Refusal};
 use crate::{Error, Result, SubmapView, stretch};
 
 /// What a matcher may look at besides the two submaps.
@@ -114,9 +114,22 @@ pub trait Matcher: std::fmt::Debug + Send {
 #[derive(Debug, Clone)]
 pub struct Engineered {
     /// The shift search.
-    pub params: EngineeredParams,
+    params: EngineeredParams,
     /// Smallest peak correlation accepted.
-    pub min_score: f64,
+    min_score: f64,
+    /// The correlation's buffers, reused from pair to pair.
+    correlator: Correlator,
+}
+
+impl Engineered {
+    /// The matcher with its shift search and the smallest peak correlation it accepts.
+    pub fn new(params: EngineeredParams, min_score: f64) -> Self {
+        Self {
+            params,
+            min_score,
+            correlator: Correlator::default(),
+        }
+    }
 }
 
 impl Matcher for Engineered {
@@ -129,7 +142,7 @@ impl Matcher for Engineered {
     }
 
     fn assess(&mut self, r: &Keyed, q: &Keyed, _: &Context<'_>) -> Result<Outcome> {
-        let m = match engineered_register(&r.view(), &q.view(), &self.params) {
+        let m = match engineered_register(&mut self.correlator, &r.view(), &q.view(), &self.params) {
             Ok(m) => m,
             // different shapes (a recording with two radars, say): not comparable
             Err(Error::Shape(why)) => {

@@ -703,10 +703,7 @@ mod tests {
             stamps: Stamps::Anchors,
             references_in_memory,
         };
-        let engineered = Engineered {
-            params: crate::engineered::EngineeredParams::default(),
-            min_score: 0.3,
-        };
+        let engineered = Engineered::new(crate::engineered::EngineeredParams::default(), 0.3);
         LoopCloser::new(params, Box::new(engineered))
     }
 
@@ -848,10 +845,7 @@ mod tests {
 
     #[test]
     fn the_method_sets_the_sigma_unless_the_parameter_does() {
-        let engineered = Engineered {
-            params: crate::engineered::EngineeredParams::default(),
-            min_score: 0.3,
-        };
+        let engineered = Engineered::new(crate::engineered::EngineeredParams::default(), 0.3);
         assert_eq!(engineered.sigma_m(), 0.1);
         assert_eq!((Oracle.sigma_m(), Zeroth { shift_m: 0.0 }.sigma_m()), (0.02, 0.02));
         assert!(!Oracle.on_grid() && Oracle.needs_truth() && engineered.on_grid());

@@ -206,10 +206,7 @@ impl Stage for RegisterStage {
         }
         let stretches = stretch::factors(params.stretch_step, params.stretch_steps).map_err(StageError::failed)?;
         let matcher: Box<dyn Matcher> = match params.method {
-            Method::Engineered => Box::new(Engineered {
-                params: params.engineered.clone(),
-                min_score: params.min_score,
-            }),
+            Method::Engineered => Box::new(Engineered::new(params.engineered.clone(), params.min_score)),
             Method::Learned => {
                 let m = Model::load(&params.model, &params.head, params.onnxruntime.as_deref())
                     .map_err(StageError::failed)?;
