@@ -212,30 +212,35 @@ pub(crate) fn factorize(
                 }
             }
         }
-        if ncols <= SMALL_COLUMNS {
-            small_panel_cholesky(ls, nrows, ncols).map_err(|j| NonPositivePivot { column: s_start + j })?;
-            for &r in pattern {
-                g2l[r] = usize::MAX;
-            }
-            continue;
-        }
-        let ls = MatMut::from_column_major_slice_mut(ls, nrows, ncols);
-        let (mut top, bottom) = ls.split_at_row_mut(ncols);
-        cholesky_in_place(
-            top.as_mut(),
-            LltRegularization::default(),
-            Par::Seq,
-            MemStack::new(&mut work.dense),
-            Default::default(),
-        )
-        .map_err(|LltError::NonPositivePivot { index }| NonPositivePivot {
-            column: s_start + index,
-        })?;
-        solve_lower_triangular_in_place(top.as_ref(), bottom.transpose_mut(), Par::Seq);
+        factor_panel(ls, nrows, ncols, &mut work.dense).map_err(|j| NonPositivePivot { column: s_start + j })?;
         for &r in pattern {
             g2l[r] = usize::MAX;
         }
     }
+    Ok(())
+}
+
+/// Factorises a supernode's `nrows x ncols` panel (column-major, diagonal block on top) in
+/// place: [`small_panel_cholesky`] up to [`SMALL_COLUMNS`] columns, else faer's blocked
+/// Cholesky of the diagonal block and triangular solve of the rows below.
+///
+/// # Errors
+/// The first column (of the panel) whose pivot is not positive.
+fn factor_panel(panel: &mut [f64], nrows: usize, ncols: usize, dense: &mut MemBuffer) -> Result<(), usize> {
+    if ncols <= SMALL_COLUMNS {
+        return small_panel_cholesky(panel, nrows, ncols);
+    }
+    let panel = MatMut::from_column_major_slice_mut(panel, nrows, ncols);
+    let (mut top, bottom) = panel.split_at_row_mut(ncols);
+    cholesky_in_place(
+        top.as_mut(),
+        LltRegularization::default(),
+        Par::Seq,
+        MemStack::new(dense),
+        Default::default(),
+    )
+    .map_err(|LltError::NonPositivePivot { index }| index)?;
+    solve_lower_triangular_in_place(top.as_ref(), bottom.transpose_mut(), Par::Seq);
     Ok(())
 }
 
