@@ -440,14 +440,18 @@ impl FixedLagSmoother {
         let of = |vars: &[VarId]| -> BTreeSet<usize> {
             vars.iter().flat_map(|v| self.factors_of[v.0].iter().copied()).collect()
         };
-        let globals: BTreeSet<VarId> = of(&free)
-            .into_iter()
-            .flat_map(|f| graph.factors()[f].keys().iter().copied())
+        let mut factors = of(&free);
+        let globals: Vec<VarId> = factors
+            .iter()
+            .flat_map(|&f| graph.factors()[f].keys().iter().copied())
             .filter(|k| self.state_of.get(k.0).copied().flatten().is_none())
+            .collect::<BTreeSet<_>>()
+            .into_iter()
             .collect();
+        factors.extend(of(&globals));
         free.extend(globals);
         let mut local = FactorGraph::new();
-        for f in of(&free) {
+        for f in factors {
             local.add_shared(graph.factors()[f].clone());
         }
         (local, Ordering::free(values, &free))
