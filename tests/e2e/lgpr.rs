@@ -194,6 +194,110 @@ fn unusable_sweeps_are_dropped_counted_and_named_while_tracking_goes_on() {
     assert_eq!(out["/track/map_fix"].len() as u64, sweeps - spoilt, "{log}");
 }
 
+/// Tracks `recording` against `map` (graphs/lgpr-track.yaml): the recorded run and the share
+/// of its map fixes that are locked.
+fn track(dir: &Path, recording: &Path, map: &Path, name: &str) -> (std::path::PathBuf, f64) {
+    let fixes = dir.join(format!("{name}.mcap"));
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-track.yaml",
+        "--set",
+        &format!("recording={}", path(recording)),
+        "--set",
+        &format!("map={}", path(map)),
+        "--record",
+        path(&fixes),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let all = crate::payloads(&fixes).remove("/track/map_fix").unwrap_or_default();
+    let locked = all
+        .iter()
+        .filter(|p| gprflow::msg::decode::<gprflow::msg::MapFix>(p).expect("decodes").locked)
+        .count();
+    assert!(all.len() > 500, "{name}: {} fixes", all.len());
+    (fixes, locked as f64 / all.len() as f64)
+}
+
+#[test]
+fn a_second_lane_aligned_to_the_map_lets_a_pass_beside_the_first_lane_lock() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (map_rec, map) = build_map(dir.path());
+    // the second mapping pass, 0.7 m to the left, tracked against the map and written at its
+    // locked fixes into a store of its own
+    let lane2_rec = sim(dir.path(), "map_lane2", "50");
+    let lane2 = dir.path().join("lane2");
+    let o = gprflow(&[
+        "launch",
+        "graphs/lgpr-map-align.yaml",
+        "--set",
+        &format!("recording={}", path(&lane2_rec)),
+        "--set",
+        &format!("map={}", path(&map)),
+        "--set",
+        &format!("aligned={}", path(&lane2)),
+    ]);
+    let log = stderr(&o);
+    assert!(o.status.success(), "{log}");
+    let placed = log
+        .lines()
+        .find(|l| l.contains("placed by their locked map fixes"))
+        .unwrap_or_else(|| panic!("no placement line: {log}"));
+    let count = |key: &str| -> u64 {
+        let at = placed
+            .find(&format!("{key}="))
+            .unwrap_or_else(|| panic!("{key}: {placed}"));
+        placed[at + key.len() + 1..]
+            .split(|c: char| !c.is_ascii_digit())
+            .next()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("{key}: {placed}"))
+    };
+    let (written, unlocked) = (count("placed"), count("unlocked"));
+    // 50 s of sweeps at 126 Hz, 5 of the 11 channels over the map: all but the first 2-3 s
+    // (standing still before the first lock) and a few near misses (correlation 0.89) lock
+    let sweeps = written + unlocked;
+    assert!(sweeps > 6000 && written * 10 > 9 * sweeps, "{placed}");
+    // joined to a copy of the map: two passes
+    let both = dir.path().join("both");
+    let o = gprflow(&["lgpr-merge", path(&map), "--into", path(&both)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = gprflow(&["lgpr-merge", path(&lane2), "--into", path(&both)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = gprflow(&["lgpr-merge", path(&both), "--into", path(&both)]);
+    assert!(!o.status.success() && stderr(&o).contains("cannot add a map to itself"));
+    let inspect = gprflow(&["inspect", path(&both), "--json"]);
+    assert!(inspect.status.success(), "{}", stderr(&inspect));
+    let info: serde_json::Value = serde_json::from_slice(&inspect.stdout).expect("json");
+    assert_eq!(info["passes"], 2, "{info}");
+    assert!(info["damaged"].as_array().is_some_and(Vec::is_empty), "{info}");
+    // a pass 1.3 m to the left on wetter soil: one channel over the single lane, which is too
+    // few to acquire a lock; over the two lanes it locks, in the first lane's frame (its first
+    // lock comes after about 13 s, 90 m; the 19 s simulated here end near the map's end)
+    let offset_rec = sim(dir.path(), "track_97_offset", "19");
+    let (_, one) = track(dir.path(), &offset_rec, &map, "one-lane");
+    let (fixes, two) = track(dir.path(), &offset_rec, &both, "two-lanes");
+    assert!(one == 0.0 && two > 0.2, "locked: one lane {one:.3}, two lanes {two:.3}");
+    let e = gprflow(&[
+        "lgpr-eval",
+        path(&fixes),
+        "--baseline",
+        path(&map_rec),
+        "--max-offset-m",
+        "2",
+        "--format",
+        "json",
+    ]);
+    assert!(e.status.success(), "{}", stderr(&e));
+    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
+    let r = &rows[0];
+    let cm = |v: &serde_json::Value| v.as_f64().expect("number") * 100.0;
+    let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
+    assert!(
+        cross <= 4.0 && along <= 6.0,
+        "two lanes: cross {cross:.1} cm, along {along:.1} cm: {r}"
+    );
+}
+
 #[test]
 fn a_map_store_of_another_version_is_refused_by_name() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -383,6 +383,41 @@ pub fn check(graph: &Path, set: &[String]) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `gprflow lgpr-merge FROM... --into MAP`: each store's columns added to `MAP` as one more
+/// pass.
+///
+/// # Errors
+/// A store that is `MAP` itself, that cannot be read whole or whose samples differ from
+/// `MAP`'s; a write that fails.
+pub fn lgpr_merge(from: &[PathBuf], into: &Path) -> Result<ExitCode> {
+    use gprflow_lgpr::map::{MapReader, MapWriter};
+    let same = |a: &Path| match (a.canonicalize(), into.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    for dir in from {
+        if same(dir) {
+            bail!("{}: cannot add a map to itself", dir.display());
+        }
+        let reader = MapReader::open(dir)?;
+        let info = reader.info();
+        let mut writer = MapWriter::open(into, info.tile_m, info.samples, info.sample_interval_ns)?;
+        let added = writer.add_map(&reader)?;
+        let after = writer.finish()?;
+        writeln!(
+            std::io::stdout().lock(),
+            "{}: {added} columns ({:.1} m) added to {}: {} passes, {} columns, {:.1} m",
+            dir.display(),
+            info.length_m,
+            into.display(),
+            after.passes,
+            after.columns,
+            after.length_m
+        )?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 /// `gprflow inspect MAP_DIR`: an LGPR map store's manifest, tiles, size per km, and every
 /// tile read back (damage reported with the tile, the block and the columns kept).
 fn inspect_map(dir: &Path, json: bool) -> Result<ExitCode> {

@@ -316,6 +316,22 @@ enum Command {
         #[arg(long, value_name = "[LABEL=]MCAP")]
         compare: Vec<String>,
     },
+    /// Adds LGPR map stores to another, each as one more pass.
+    ///
+    /// A pass aligned against a map (graphs/lgpr-map-align.yaml) is written to a store of its
+    /// own, since its tracker reads the map while it runs; this joins it to the map.
+    ///
+    /// Example:
+    ///   gprflow lgpr-merge out/lane2.lgprmap --into out/highway.lgprmap
+    #[command(verbatim_doc_comment)]
+    LgprMerge {
+        /// The stores to add.
+        #[arg(required = true)]
+        from: Vec<PathBuf>,
+        /// The store they join (created when missing).
+        #[arg(long)]
+        into: PathBuf,
+    },
     /// LGPR tracking accuracy against the mapping pass (seed 001 eq. 11).
     ///
     /// Along-, cross-track and total RMS over distance for the LGPR and the GPS/INS, lock
@@ -701,6 +717,7 @@ fn main() -> ExitCode {
             also,
             compare,
         }),
+        Command::LgprMerge { from, into } => gprflow_cli::commands::lgpr_merge(&from, &into),
         Command::LgprEval {
             runs,
             baseline,

@@ -403,6 +403,44 @@ impl MapWriter {
         }
     }
 
+    /// Adds every column of the map `from` to this pass (its driven length too): passes
+    /// written to a map of their own, such as a pass aligned against this map (the aligned
+    /// pass's tracker reads this map while it is written, so it cannot write into it), join
+    /// it. `from`'s tiles are read one at a time.
+    ///
+    /// # Errors
+    /// `Incompatible` when `from`'s samples differ; a tile of `from` that cannot be read
+    /// whole (`Io`, `Truncated`, `Corrupt`, naming the file: its complete blocks are added
+    /// first; the tiles after it are not); `Io` when writing.
+    pub fn add_map(&mut self, from: &MapReader) -> Result<u64, StoreError> {
+        let (theirs, ours) = (from.info(), &self.info);
+        if theirs.samples != ours.samples
+            || (theirs.sample_interval_ns - ours.sample_interval_ns).abs() > 1e-6 * ours.sample_interval_ns.abs()
+        {
+            return Err(StoreError::Incompatible {
+                path: from.dir().join("manifest.json"),
+                field: "samples",
+                map: format!("{} x {} ns", ours.samples, ours.sample_interval_ns),
+                data: format!("{} x {} ns", theirs.samples, theirs.sample_interval_ns),
+            });
+        }
+        let mut added = 0;
+        for key in from.tiles()?.into_keys() {
+            let read = from.read_tile(key, None)?;
+            let c = &read.columns;
+            for i in 0..c.len() {
+                let [x, y] = c.positions[i];
+                self.push(x, y, c.stamps_ns[i], c.channels[i], c.column(i))?;
+            }
+            added += c.len() as u64;
+            if let Some(damage) = read.damage {
+                return Err(damage);
+            }
+        }
+        self.add_length(from.info().length_m);
+        Ok(added)
+    }
+
     /// Adds one column at world `(x, y)`.
     ///
     /// # Errors
@@ -759,6 +797,52 @@ mod tests {
             .count();
         assert!(t.columns.positions.iter().all(|p| p[0] <= 10.0));
         assert_eq!(t.columns.len(), inside);
+    }
+
+    #[test]
+    fn a_map_added_to_another_keeps_every_column_bit_for_bit_and_refuses_other_samples() {
+        let dir = tempfile::tempdir().expect("must succeed");
+        let (a, b, c) = (dir.path().join("a"), dir.path().join("b"), dir.path().join("c"));
+        let mut w = MapWriter::create(&a, MapInfo::new(50.0, 40, 0.163)).expect("must succeed");
+        for i in 0..1500 {
+            w.push(i as f64 * 0.07 - 20.0, 1.0, i as i64, (i % 11) as u16, &column(i, 40))
+                .expect("must succeed");
+        }
+        w.add_length(105.0);
+        w.finish().expect("must succeed");
+        let mut w = MapWriter::create(&b, MapInfo::new(50.0, 40, 0.163)).expect("must succeed");
+        w.push(3.0, 4.0, 7, 2, &column(7, 40)).expect("must succeed");
+        w.add_length(1.0);
+        w.finish().expect("must succeed");
+        // a joins b as its second pass
+        let from = MapReader::open(&a).expect("must succeed");
+        let mut w = MapWriter::open(&b, 50.0, 40, 0.163).expect("must succeed");
+        assert_eq!(w.add_map(&from).expect("must succeed"), 1500);
+        let info = w.finish().expect("must succeed");
+        assert_eq!((info.columns, info.passes, info.length_m), (1501, 2, 106.0));
+        let read_all = |dir: &Path| {
+            let r = MapReader::open(dir).expect("must succeed");
+            let mut out = Vec::new();
+            for key in r.tiles().expect("must succeed").into_keys() {
+                let t = r.read_tile(key, None).expect("must succeed");
+                assert!(t.damage.is_none());
+                for i in 0..t.columns.len() {
+                    out.push((
+                        t.columns.stamps_ns[i],
+                        t.columns.positions[i],
+                        t.columns.column(i).to_vec(),
+                    ));
+                }
+            }
+            out.sort_by(|x, y| x.partial_cmp(y).expect("finite"));
+            out
+        };
+        let (theirs, joined) = (read_all(&a), read_all(&b));
+        assert!(theirs.iter().all(|col| joined.contains(col)));
+        // samples of another length are refused by the added map's manifest
+        let mut w = MapWriter::create(&c, MapInfo::new(50.0, 16, 0.163)).expect("must succeed");
+        let e = w.add_map(&from).expect_err("other samples").to_string();
+        assert!(e.contains("a/manifest.json") && e.contains("40 x"), "{e}");
     }
 
     #[test]

@@ -5,11 +5,18 @@
 //! A sweep is placed by interpolating the two poses around its stamp, so it waits (at most
 //! one pose interval) for the pose after it. Sweeps before the first pose or after the last
 //! cannot be placed and are counted, as are unusable sweeps (wrong domain, sizes, NaN).
+//!
+//! Placed by map fixes instead (the `fix` input: `lgpr_track`'s registrations of the same
+//! sweeps against an existing map, `graphs/lgpr-map-align.yaml`), a pass is written in that
+//! map's frame: each sweep at its own fix's pose, and only where the fix is locked. This is
+//! the cross-pass alignment seed 001 §2.2 names against ghosting: two passes placed each by
+//! its own GPS/INS disagree by the GPS/INS's error (decimetres), and a grid that mixes them
+//! blurs. Sweeps without a fix or with an unlocked one are counted and left out.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
 
-use gprflow_msg::{Message, Odometry, PoseStamped, Quaternion, Sweep};
+use gprflow_msg::{MapFix, Message, Odometry, PoseStamped, Quaternion, Sweep};
 use gprflow_stage::{Drops, Input, InputPorts, InputSpec, Outputs, ParamError, PortSpec, Ports, Stage, StageError};
 use serde::Deserialize;
 
@@ -76,7 +83,15 @@ pub struct LgprMapStage {
     writer: Option<MapWriter>,
     /// The last pose and the one before.
     poses: (Option<Placed>, Option<Placed>),
-    /// Sweeps waiting for the pose after them: (stamp, seq, channels, samples).
+    /// Placed by map fixes (the `fix` input) instead of poses.
+    by_fix: bool,
+    /// Map fixes not yet matched with their sweep: the locked ones' poses (None: not locked).
+    fixes: VecDeque<(i64, Option<Placed>)>,
+    /// Sweeps without a fix, and with a fix that was not locked.
+    no_fix: u64,
+    unlocked: u64,
+    /// Sweeps waiting for the pose after them (or for their fix): (stamp, seq, channels,
+    /// samples).
     waiting: VecDeque<(i64, u64, usize, Vec<f32>)>,
     samples: usize,
     sample_interval_ns: f64,
@@ -110,6 +125,31 @@ impl LgprMapStage {
                 continue;
             }
             self.write(&interpolate(&a, &b, stamp), channels, &values)?;
+        }
+        Ok(())
+    }
+
+    /// Pairs waiting sweeps with their map fixes (the same stamp; both arrive in stamp
+    /// order): a locked fix places its sweep, an unlocked one leaves it out, and a sweep whose
+    /// stamp a later fix has passed got none.
+    fn match_fixes(&mut self) -> Result<(), StageError> {
+        while let (Some(&(sweep_stamp, ..)), Some(&(fix_stamp, placed))) = (self.waiting.front(), self.fixes.front()) {
+            if fix_stamp < sweep_stamp {
+                self.fixes.pop_front();
+                continue;
+            }
+            let Some((_, _, channels, values)) = self.waiting.pop_front() else {
+                break;
+            };
+            if fix_stamp > sweep_stamp {
+                self.no_fix += 1;
+                continue;
+            }
+            self.fixes.pop_front();
+            match placed {
+                Some(at) => self.write(&at, channels, &values)?,
+                None => self.unlocked += 1,
+            }
         }
         Ok(())
     }
@@ -193,12 +233,35 @@ impl LgprMapStage {
             );
             return;
         }
-        if self.poses.1.is_none() {
+        if !self.by_fix && self.poses.1.is_none() {
             self.before_first_pose += 1;
             return;
         }
         self.waiting
             .push_back((input.stamp_ns(), input.seq(), channels, s.values.to_vec()));
+    }
+
+    fn on_fix(&mut self, input: &Input<'_>, fix: &MapFix) -> Result<(), StageError> {
+        let p = &fix.world_from_body;
+        let placed = Placed {
+            stamp_ns: input.stamp_ns(),
+            x: p.position.x,
+            y: p.position.y,
+            yaw: yaw_of(&p.orientation),
+        };
+        if fix.locked && ![placed.x, placed.y, placed.yaw].iter().all(|v| v.is_finite()) {
+            self.drops.record(
+                Self::NAME,
+                input,
+                &"locked fix with a non-finite position or orientation",
+            );
+            return Ok(());
+        }
+        if self.fixes.back().is_some_and(|(stamp, _)| *stamp >= placed.stamp_ns) {
+            return Ok(());
+        }
+        self.fixes.push_back((placed.stamp_ns, fix.locked.then_some(placed)));
+        self.match_fixes()
     }
 }
 
@@ -216,6 +279,7 @@ impl Stage for LgprMapStage {
         InputPorts::Fixed(vec![
             port("ins", Odometry::TYPE_NAME, true),
             port("pose", PoseStamped::TYPE_NAME, true),
+            port("fix", MapFix::TYPE_NAME, true),
             port("sweep", Sweep::TYPE_NAME, false),
         ])
     }
@@ -236,16 +300,23 @@ impl Stage for LgprMapStage {
     }
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
-        let sources = usize::from(ports.input("ins").is_some()) + usize::from(ports.input("pose").is_some());
+        let sources = ["ins", "pose", "fix"]
+            .iter()
+            .filter(|p| ports.input(p).is_some())
+            .count();
         if sources != 1 {
             return Err(StageError::failed(
-                "lgpr_map: connect exactly one pose source, `ins` (GPS/INS Odometry) or `pose` (PoseStamped)",
+                "lgpr_map: connect exactly one pose source, `ins` (GPS/INS Odometry), `pose` (PoseStamped) or `fix` (an lgpr_track's MapFix)",
             ));
         }
         Ok(Self {
             params,
             writer: None,
             poses: (None, None),
+            by_fix: ports.input("fix").is_some(),
+            fixes: VecDeque::new(),
+            no_fix: 0,
+            unlocked: 0,
             waiting: VecDeque::new(),
             samples: 0,
             sample_interval_ns: 0.0,
@@ -290,9 +361,16 @@ impl Stage for LgprMapStage {
                         .record(Self::NAME, &input, &"non-finite position or orientation");
                 }
             }
+            "fix" => {
+                let m: MapFix = input.decode()?;
+                self.on_fix(&input, &m)?;
+            }
             "sweep" => {
                 let s: Sweep = input.decode()?;
                 self.on_sweep(&input, &s);
+                if self.by_fix {
+                    self.match_fixes()?;
+                }
             }
             _ => {}
         }
@@ -303,7 +381,15 @@ impl Stage for LgprMapStage {
         let after_last_pose = self.waiting.len();
         self.waiting.clear();
         self.drops.report(Self::NAME);
-        if self.before_first_pose + after_last_pose as u64 > 0 {
+        if self.by_fix {
+            self.no_fix += after_last_pose as u64;
+            tracing::info!(
+                placed = self.sweeps_written,
+                unlocked = self.unlocked,
+                without_fix = self.no_fix,
+                "lgpr_map: sweeps placed by their locked map fixes; the others left out"
+            );
+        } else if self.before_first_pose + after_last_pose as u64 > 0 {
             tracing::warn!(
                 before_first_pose = self.before_first_pose,
                 after_last_pose,
