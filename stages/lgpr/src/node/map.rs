@@ -41,6 +41,9 @@ pub struct LgprMapParams {
     pub min_spacing_m: f64,
 }
 
+/// Steps of the driven length, m (see `LgprMapStage::length_from`).
+const LENGTH_STEP_M: f64 = 0.5;
+
 fn default_tile() -> f64 {
     50.0
 }
@@ -96,6 +99,10 @@ pub struct LgprMapStage {
     samples: usize,
     sample_interval_ns: f64,
     last_written: Option<(f64, f64)>,
+    /// Where the driven length was last measured from: it is added in steps of at least
+    /// [`LENGTH_STEP_M`], so that the centimetres by which map fixes scatter from sweep to
+    /// sweep (3.5 cm apart at 16 km/h) do not add up to length.
+    length_from: Option<(f64, f64)>,
     sweeps_written: u64,
     before_first_pose: u64,
     skipped_close: u64,
@@ -178,8 +185,15 @@ impl LgprMapStage {
                 self.writer.insert(w)
             }
         };
-        if let Some(prev) = self.last_written {
-            writer.add_length((centre.0 - prev.0).hypot(centre.1 - prev.1));
+        match self.length_from {
+            Some(from) => {
+                let step = (centre.0 - from.0).hypot(centre.1 - from.1);
+                if step >= LENGTH_STEP_M {
+                    writer.add_length(step);
+                    self.length_from = Some(centre);
+                }
+            }
+            None => self.length_from = Some(centre),
         }
         for k in 0..channels {
             let (x, y) = ArrayGeometry::to_world(at.x, at.y, at.yaw, bx, self.params.array.channel_y_m(k, channels));
@@ -321,6 +335,7 @@ impl Stage for LgprMapStage {
             samples: 0,
             sample_interval_ns: 0.0,
             last_written: None,
+            length_from: None,
             sweeps_written: 0,
             before_first_pose: 0,
             skipped_close: 0,
@@ -396,10 +411,13 @@ impl Stage for LgprMapStage {
                 "lgpr_map: sweeps outside the poses' time span could not be placed"
             );
         }
-        let Some(writer) = self.writer.take() else {
+        let Some(mut writer) = self.writer.take() else {
             tracing::warn!(map = %self.params.map.display(), "lgpr_map: no sweep placed; nothing written");
             return Ok(());
         };
+        if let (Some(from), Some(last)) = (self.length_from, self.last_written) {
+            writer.add_length((last.0 - from.0).hypot(last.1 - from.1));
+        }
         let dir = self.params.map.clone();
         let info = writer.finish().map_err(StageError::failed)?;
         let bytes = crate::map::MapReader::open(&dir)
