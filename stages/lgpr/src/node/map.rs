@@ -79,6 +79,70 @@ fn interpolate(a: &Placed, b: &Placed, stamp_ns: i64) -> Placed {
     }
 }
 
+/// Sweeps paired with the map fixes of the same stamp (both arrive in stamp order): a locked
+/// fix places its sweep, an unlocked one leaves it out, a sweep that a later fix has passed got
+/// none, and a fix whose sweep never came (dropped as unusable) is let go.
+#[derive(Debug)]
+struct FixMatcher<S> {
+    sweeps: VecDeque<(i64, S)>,
+    /// The fixes not yet paired: the locked ones' poses (None: not locked).
+    fixes: VecDeque<(i64, Option<Placed>)>,
+    /// Sweeps left out: with an unlocked fix, without a fix.
+    unlocked: u64,
+    no_fix: u64,
+}
+
+impl<S> Default for FixMatcher<S> {
+    fn default() -> Self {
+        Self {
+            sweeps: VecDeque::new(),
+            fixes: VecDeque::new(),
+            unlocked: 0,
+            no_fix: 0,
+        }
+    }
+}
+
+impl<S> FixMatcher<S> {
+    fn sweep(&mut self, stamp_ns: i64, sweep: S) {
+        self.sweeps.push_back((stamp_ns, sweep));
+    }
+
+    /// A fix at or before the last one is ignored.
+    fn fix(&mut self, stamp_ns: i64, placed: Option<Placed>) {
+        if self.fixes.back().is_none_or(|(last, _)| *last < stamp_ns) {
+            self.fixes.push_back((stamp_ns, placed));
+        }
+    }
+
+    /// The next sweep with its locked fix's pose, once both have come.
+    fn next_placed(&mut self) -> Option<(Placed, S)> {
+        loop {
+            let (&(sweep_ns, _), &(fix_ns, placed)) = (self.sweeps.front()?, self.fixes.front()?);
+            if fix_ns < sweep_ns {
+                self.fixes.pop_front();
+                continue;
+            }
+            let (_, sweep) = self.sweeps.pop_front()?;
+            if fix_ns > sweep_ns {
+                self.no_fix += 1;
+                continue;
+            }
+            self.fixes.pop_front();
+            match placed {
+                Some(at) => return Some((at, sweep)),
+                None => self.unlocked += 1,
+            }
+        }
+    }
+
+    /// The sweeps still waiting got no fix.
+    fn finish(&mut self) {
+        self.no_fix += self.sweeps.len() as u64;
+        self.sweeps.clear();
+    }
+}
+
 /// The `lgpr_map` stage.
 #[derive(Debug)]
 pub struct LgprMapStage {
@@ -86,15 +150,10 @@ pub struct LgprMapStage {
     writer: Option<MapWriter>,
     /// The last pose and the one before.
     poses: (Option<Placed>, Option<Placed>),
-    /// Placed by map fixes (the `fix` input) instead of poses.
-    by_fix: bool,
-    /// Map fixes not yet matched with their sweep: the locked ones' poses (None: not locked).
-    fixes: VecDeque<(i64, Option<Placed>)>,
-    /// Sweeps without a fix, and with a fix that was not locked.
-    no_fix: u64,
-    unlocked: u64,
-    /// Sweeps waiting for the pose after them (or for their fix): (stamp, seq, channels,
-    /// samples).
+    /// Placed by map fixes (the `fix` input) instead of poses: sweeps (channels, samples)
+    /// waiting for their fix.
+    by_fix: Option<FixMatcher<(usize, Vec<f32>)>>,
+    /// Sweeps waiting for the pose after them: (stamp, seq, channels, samples).
     waiting: VecDeque<(i64, u64, usize, Vec<f32>)>,
     samples: usize,
     sample_interval_ns: f64,
@@ -136,27 +195,10 @@ impl LgprMapStage {
         Ok(())
     }
 
-    /// Pairs waiting sweeps with their map fixes (the same stamp; both arrive in stamp
-    /// order): a locked fix places its sweep, an unlocked one leaves it out, and a sweep whose
-    /// stamp a later fix has passed got none.
-    fn match_fixes(&mut self) -> Result<(), StageError> {
-        while let (Some(&(sweep_stamp, ..)), Some(&(fix_stamp, placed))) = (self.waiting.front(), self.fixes.front()) {
-            if fix_stamp < sweep_stamp {
-                self.fixes.pop_front();
-                continue;
-            }
-            let Some((_, _, channels, values)) = self.waiting.pop_front() else {
-                break;
-            };
-            if fix_stamp > sweep_stamp {
-                self.no_fix += 1;
-                continue;
-            }
-            self.fixes.pop_front();
-            match placed {
-                Some(at) => self.write(&at, channels, &values)?,
-                None => self.unlocked += 1,
-            }
+    /// Writes the sweeps whose locked fix has come.
+    fn place_by_fixes(&mut self) -> Result<(), StageError> {
+        while let Some((at, (channels, values))) = self.by_fix.as_mut().and_then(FixMatcher::next_placed) {
+            self.write(&at, channels, &values)?;
         }
         Ok(())
     }
@@ -247,7 +289,11 @@ impl LgprMapStage {
             );
             return;
         }
-        if !self.by_fix && self.poses.1.is_none() {
+        if let Some(m) = &mut self.by_fix {
+            m.sweep(input.stamp_ns(), (channels, s.values.to_vec()));
+            return;
+        }
+        if self.poses.1.is_none() {
             self.before_first_pose += 1;
             return;
         }
@@ -271,11 +317,10 @@ impl LgprMapStage {
             );
             return Ok(());
         }
-        if self.fixes.back().is_some_and(|(stamp, _)| *stamp >= placed.stamp_ns) {
-            return Ok(());
+        if let Some(m) = &mut self.by_fix {
+            m.fix(placed.stamp_ns, fix.locked.then_some(placed));
         }
-        self.fixes.push_back((placed.stamp_ns, fix.locked.then_some(placed)));
-        self.match_fixes()
+        self.place_by_fixes()
     }
 }
 
@@ -327,10 +372,7 @@ impl Stage for LgprMapStage {
             params,
             writer: None,
             poses: (None, None),
-            by_fix: ports.input("fix").is_some(),
-            fixes: VecDeque::new(),
-            no_fix: 0,
-            unlocked: 0,
+            by_fix: ports.input("fix").is_some().then(FixMatcher::default),
             waiting: VecDeque::new(),
             samples: 0,
             sample_interval_ns: 0.0,
@@ -383,9 +425,7 @@ impl Stage for LgprMapStage {
             "sweep" => {
                 let s: Sweep = input.decode()?;
                 self.on_sweep(&input, &s);
-                if self.by_fix {
-                    self.match_fixes()?;
-                }
+                self.place_by_fixes()?;
             }
             _ => {}
         }
@@ -396,12 +436,12 @@ impl Stage for LgprMapStage {
         let after_last_pose = self.waiting.len();
         self.waiting.clear();
         self.drops.report(Self::NAME);
-        if self.by_fix {
-            self.no_fix += after_last_pose as u64;
+        if let Some(m) = &mut self.by_fix {
+            m.finish();
             tracing::info!(
                 placed = self.sweeps_written,
-                unlocked = self.unlocked,
-                without_fix = self.no_fix,
+                unlocked = m.unlocked,
+                without_fix = m.no_fix,
                 "lgpr_map: sweeps placed by their locked map fixes; the others left out"
             );
         } else if self.before_first_pose + after_last_pose as u64 > 0 {
@@ -445,5 +485,48 @@ pub(crate) fn to_param(e: crate::Error) -> ParamError {
     match e {
         crate::Error::Param(p) => p,
         other => ParamError::new("", other.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(stamp_ns: i64) -> Placed {
+        Placed {
+            stamp_ns,
+            x: stamp_ns as f64,
+            y: 1.0,
+            yaw: 0.0,
+        }
+    }
+
+    #[test]
+    fn sweeps_pair_with_the_fix_of_their_stamp_in_either_order_and_the_others_are_counted() {
+        let mut m = FixMatcher::default();
+        // fix before its sweep, sweep before its fix
+        m.fix(10, Some(at(10)));
+        assert!(m.next_placed().is_none());
+        m.sweep(10, "a");
+        m.sweep(20, "b");
+        assert_eq!(m.next_placed().map(|(p, s)| (p.x, s)), Some((10.0, "a")));
+        assert!(m.next_placed().is_none());
+        m.fix(20, Some(at(20)));
+        assert_eq!(m.next_placed().map(|(p, s)| (p.x, s)), Some((20.0, "b")));
+        // an unlocked fix leaves its sweep out; a sweep the fixes skipped got none; a fix whose
+        // sweep never came is let go; a fix out of order is ignored
+        m.sweep(30, "unlocked");
+        m.sweep(40, "skipped");
+        m.sweep(60, "c");
+        m.fix(30, None);
+        m.fix(25, Some(at(25)));
+        m.fix(50, Some(at(50)));
+        m.fix(60, Some(at(60)));
+        assert_eq!(m.next_placed().map(|(p, s)| (p.x, s)), Some((60.0, "c")));
+        assert_eq!((m.unlocked, m.no_fix), (1, 1));
+        m.sweep(70, "last");
+        m.finish();
+        assert_eq!((m.unlocked, m.no_fix), (1, 2));
+        assert!(m.next_placed().is_none());
     }
 }
