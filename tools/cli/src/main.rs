@@ -319,10 +319,14 @@ enum Command {
     /// Adds LGPR map stores to another, each as one more pass.
     ///
     /// A pass aligned against a map (graphs/lgpr-map-align.yaml) is written to a store of its
-    /// own, since its tracker reads the map while it runs; this joins it to the map.
+    /// own, since its tracker reads the map while it runs; this joins it to the map
+    /// (docs/lgpr.md, "A map of two lanes").
     ///
-    /// Example:
-    ///   gprflow lgpr-merge out/lane2.lgprmap --into out/highway.lgprmap
+    /// Example (a map of the committed 5 s highway sample, then a copy of it with that pass
+    /// twice):
+    ///   gprflow launch graphs/lgpr-map.yaml --set map=out/hw5-merge.lgprmap
+    ///   gprflow lgpr-merge out/hw5-merge.lgprmap --into out/hw5-twice.lgprmap
+    ///   gprflow lgpr-merge out/hw5-merge.lgprmap --into out/hw5-twice.lgprmap
     #[command(verbatim_doc_comment)]
     LgprMerge {
         /// The stores to add.
