@@ -50,7 +50,9 @@ while :; do
             rss=$(awk '/^VmRSS/ {print $2}' "/proc/$pid/status" 2> /dev/null || true)
             fds=$(find "/proc/$pid/fd" -mindepth 1 -maxdepth 1 2> /dev/null | wc -l || true)
             now=$(date +%s.%N)
-            if [ -n "$spec" ] && [ -n "$rss" ]; then
+            # a live process holds at least its standard streams: 0 is a read that failed (the
+            # process starting or ending), not a count
+            if [ -n "$spec" ] && [ -n "$rss" ] && [ "${fds:-0}" -gt 0 ]; then
                 printf '%s\t%s\t%.1f\t%s\t%s\n' "$n" "${spec%.json}" "$(awk -v a="$now" -v b="$start" 'BEGIN { print a - b }')" "$rss" "$fds" \
                     >> "$out/samples.tsv"
             fi
