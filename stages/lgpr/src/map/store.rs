@@ -177,6 +177,28 @@ impl MapInfo {
         }
     }
 
+    /// `Incompatible`, naming `path`, when columns of `samples` samples
+    /// `sample_interval_ns` apart do not fit this map.
+    fn check_fits(&self, path: PathBuf, samples: u32, sample_interval_ns: f64) -> Result<(), StoreError> {
+        if self.samples != samples {
+            return Err(StoreError::Incompatible {
+                path,
+                field: "samples",
+                map: self.samples.to_string(),
+                data: samples.to_string(),
+            });
+        }
+        if (self.sample_interval_ns - sample_interval_ns).abs() > 1e-6 * sample_interval_ns.abs() {
+            return Err(StoreError::Incompatible {
+                path,
+                field: "sample_interval_ns",
+                map: self.sample_interval_ns.to_string(),
+                data: sample_interval_ns.to_string(),
+            });
+        }
+        Ok(())
+    }
+
     /// Reads and checks `dir/manifest.json`.
     ///
     /// # Errors
@@ -362,23 +384,7 @@ impl MapWriter {
             return Self::create(dir, MapInfo::new(tile_m, samples, sample_interval_ns));
         }
         let mut info = MapInfo::read(dir)?;
-        let path = dir.join("manifest.json");
-        if info.samples != samples {
-            return Err(StoreError::Incompatible {
-                path,
-                field: "samples",
-                map: info.samples.to_string(),
-                data: samples.to_string(),
-            });
-        }
-        if (info.sample_interval_ns - sample_interval_ns).abs() > 1e-6 * sample_interval_ns.abs() {
-            return Err(StoreError::Incompatible {
-                path,
-                field: "sample_interval_ns",
-                map: info.sample_interval_ns.to_string(),
-                data: sample_interval_ns.to_string(),
-            });
-        }
+        info.check_fits(dir.join("manifest.json"), samples, sample_interval_ns)?;
         info.passes += 1;
         fs::create_dir_all(dir.join("tiles")).map_err(io_err(dir))?;
         info.write(dir)?;
@@ -413,17 +419,12 @@ impl MapWriter {
     /// whole (`Io`, `Truncated`, `Corrupt`, naming the file: its complete blocks are added
     /// first; the tiles after it are not); `Io` when writing.
     pub fn add_map(&mut self, from: &MapReader) -> Result<u64, StoreError> {
-        let (theirs, ours) = (from.info(), &self.info);
-        if theirs.samples != ours.samples
-            || (theirs.sample_interval_ns - ours.sample_interval_ns).abs() > 1e-6 * ours.sample_interval_ns.abs()
-        {
-            return Err(StoreError::Incompatible {
-                path: from.dir().join("manifest.json"),
-                field: "samples",
-                map: format!("{} x {} ns", ours.samples, ours.sample_interval_ns),
-                data: format!("{} x {} ns", theirs.samples, theirs.sample_interval_ns),
-            });
-        }
+        let theirs = from.info();
+        self.info.check_fits(
+            from.dir().join("manifest.json"),
+            theirs.samples,
+            theirs.sample_interval_ns,
+        )?;
         let mut added = 0;
         for key in from.tiles()?.into_keys() {
             let read = from.read_tile(key, None)?;
@@ -842,7 +843,10 @@ mod tests {
         // samples of another length are refused by the added map's manifest
         let mut w = MapWriter::create(&c, MapInfo::new(50.0, 16, 0.163)).expect("must succeed");
         let e = w.add_map(&from).expect_err("other samples").to_string();
-        assert!(e.contains("a/manifest.json") && e.contains("40 x"), "{e}");
+        assert!(
+            e.contains("a/manifest.json") && e.contains("samples: the map has 16, the data has 40"),
+            "{e}"
+        );
     }
 
     #[test]
