@@ -28,6 +28,16 @@ fn sim(dir: &Path, run: &str, seconds: &str) -> std::path::PathBuf {
     out
 }
 
+/// `gprflow lgpr-eval RUN --baseline MAP_RECORDING EXTRA... --format json`: the run's row.
+fn eval_row(run: &Path, baseline: &Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec!["lgpr-eval", path(run), "--baseline", path(baseline), "--format", "json"];
+    args.extend_from_slice(extra);
+    let e = gprflow(&args);
+    assert!(e.status.success(), "{}", stderr(&e));
+    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
+    rows[0].clone()
+}
+
 /// Builds the map of the first 50 s of the mapping pass (about 200 m) into `dir/map`.
 fn build_map(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     let map_rec = sim(dir, "map", "50");
@@ -75,21 +85,7 @@ fn a_tracking_pass_localises_against_the_mapping_pass_within_the_papers_errors()
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     // `gprflow lgpr-eval` of the run against the mapping pass: its one row
-    let eval = |extra: &[&str]| -> serde_json::Value {
-        let mut args = vec![
-            "lgpr-eval",
-            path(&fixes),
-            "--baseline",
-            path(&map_rec),
-            "--format",
-            "json",
-        ];
-        args.extend_from_slice(extra);
-        let e = gprflow(&args);
-        assert!(e.status.success(), "{}", stderr(&e));
-        let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
-        rows[0].clone()
-    };
+    let eval = |extra: &[&str]| eval_row(&fixes, &map_rec, extra);
     let r = &eval(&[]);
     let cm = |v: &serde_json::Value| v.as_f64().expect("number") * 100.0;
     let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
@@ -277,19 +273,7 @@ fn a_second_lane_aligned_to_the_map_lets_a_pass_beside_the_first_lane_lock() {
     let (_, one) = track(dir.path(), &offset_rec, &map, "one-lane");
     let (fixes, two) = track(dir.path(), &offset_rec, &both, "two-lanes");
     assert!(one == 0.0 && two > 0.2, "locked: one lane {one:.3}, two lanes {two:.3}");
-    let e = gprflow(&[
-        "lgpr-eval",
-        path(&fixes),
-        "--baseline",
-        path(&map_rec),
-        "--max-offset-m",
-        "2",
-        "--format",
-        "json",
-    ]);
-    assert!(e.status.success(), "{}", stderr(&e));
-    let rows: serde_json::Value = serde_json::from_slice(&e.stdout).expect("json");
-    let r = &rows[0];
+    let r = &eval_row(&fixes, &map_rec, &["--max-offset-m", "2"]);
     let cm = |v: &serde_json::Value| v.as_f64().expect("number") * 100.0;
     let (cross, along) = (cm(&r["lgpr"]["cross_m"]), cm(&r["lgpr"]["along_m"]));
     assert!(
