@@ -193,6 +193,7 @@ fn python_mcap_reader_decodes_every_message_type() {
                 along_track_m: 3.25,
                 residual_m: -0.5,
                 gate_m: 0.3,
+                sigma_m: 0.0,
                 accepted: false,
             }),
         ),

@@ -341,6 +341,7 @@ mod tests {
                     along_track_m,
                     residual_m,
                     gate_m: 0.3,
+                    sigma_m: 0.0,
                     accepted,
                 };
                 rec.write(topic, k as u64, to * S, &msg::encode(&c)).expect("write");

@@ -194,6 +194,10 @@ message! {
         pub residual_m: f64,
         /// The gate at that moment, m (0: off).
         pub gate_m: f64,
+        /// The residual's predicted standard deviation, m: the estimate's marginal
+        /// along-track uncertainty between the two states and the registration's sigma
+        /// (0: not computed).
+        pub sigma_m: f64,
         /// Taken into the graph (false: dropped by the gate).
         pub accepted: bool,
     }

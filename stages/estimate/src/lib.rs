@@ -16,6 +16,9 @@
 //!   ordering, fluid relinearisation, marginal covariance of the newest state);
 //!   [`smoother`]: one interface over it and the older fixed-lag smoother (a window plus
 //!   full re-solves).
+//! - [`relative`]: the marginal variance of a scalar function of the estimate (the
+//!   along-track distance between two states) from the whole graph's information, for the
+//!   online estimator's Mahalanobis gate on registrations.
 //! - [`lines`]: initial values of line parameters (Fig. 5.7, eq. 5.8-5.12).
 //! - [`online`]: states at a fixed rate from time-stamped measurements (plain code).
 //! - [`problem`] and [`bench`](mod@bench): the GTSAM peer's export format and `gprflow bench estimate`.
@@ -42,6 +45,7 @@ pub mod node;
 pub mod noise;
 pub mod online;
 pub mod problem;
+pub mod relative;
 pub mod smoother;
 pub mod values;
 

@@ -89,6 +89,11 @@ pub struct EstimateParams {
     /// Widening of `registration_gate_m` per second that the query lies after the newest
     /// registered query the estimate has solved with, m/s (default 0).
     pub registration_gate_growth_mps: f64,
+    /// Mahalanobis gate on registrations, standard deviations (default 0: off): one whose
+    /// along-track residual is further than this many standard deviations of its prediction
+    /// (the estimate's marginal along-track uncertainty between the two states and the
+    /// registration's sigma) is dropped. Applies with `registration_gate_m` when both are set.
+    pub registration_gate_sigmas: f64,
     /// Minimum baseline that initialises a line, m (default 1.0).
     pub line_min_baseline_m: f64,
     /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
@@ -113,7 +118,8 @@ pub struct EstimateParams {
     /// always gives the same output.
     pub background_solves: bool,
     /// Also publish the verdict on every registration (taken, or dropped by the gate, with
-    /// its residual) on the `registration_check` output (`RegistrationCheck`), for
+    /// its residual and predicted sigma: one whole-graph factorisation per update that brings
+    /// registrations) on the `registration_check` output (`RegistrationCheck`), for
     /// `gprflow eval` (default false).
     pub diagnostics: bool,
 }
@@ -143,6 +149,7 @@ impl Default for EstimateParams {
             registration_across_sigma_m: o.registration_across_sigma_m,
             registration_gate_m: o.registration_gate_m,
             registration_gate_growth_mps: o.registration_gate_growth_mps,
+            registration_gate_sigmas: o.registration_gate_sigmas,
             line_min_baseline_m: o.line_min_baseline_m,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             gravity_align_s: o.gravity_align_s,
@@ -186,6 +193,7 @@ impl EstimateParams {
             registration_across_sigma_m: self.registration_across_sigma_m,
             registration_gate_m: self.registration_gate_m,
             registration_gate_growth_mps: self.registration_gate_growth_mps,
+            registration_gate_sigmas: self.registration_gate_sigmas,
             line_min_baseline_m: self.line_min_baseline_m,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
             gravity_align_s: self.gravity_align_s,
@@ -235,6 +243,7 @@ impl EstimateParams {
             ("registration_across_sigma_m", self.registration_across_sigma_m),
             ("registration_gate_m", self.registration_gate_m),
             ("registration_gate_growth_mps", self.registration_gate_growth_mps),
+            ("registration_gate_sigmas", self.registration_gate_sigmas),
             ("snapshot_growth", self.snapshot_growth),
         ];
         for (key, value) in off_or_positive {
@@ -474,6 +483,7 @@ impl Stage for EstimateStage {
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
         let mut est = OnlineEstimator::new(params.online());
+        est.report_registration_sigmas(params.diagnostics);
         let no_initial_pose = ports.input("initial_pose").is_none();
         let anchor_on_gps = no_initial_pose && ports.input("gps").is_some();
         let anchor_on_map_fix = no_initial_pose && !anchor_on_gps && ports.input("map_fix").is_some();
@@ -549,12 +559,20 @@ impl Stage for EstimateStage {
                         tracing::debug!(seq = input.seq(), "registration matches no states; dropped");
                     }
                     Some(
-                        o @ (RegistrationOutcome::Added { residual_m, gate_m }
-                        | RegistrationOutcome::Gated { residual_m, gate_m }),
+                        o @ (RegistrationOutcome::Added {
+                            residual_m,
+                            gate_m,
+                            sigma_m,
+                        }
+                        | RegistrationOutcome::Gated {
+                            residual_m,
+                            gate_m,
+                            sigma_m,
+                        }),
                     ) => {
                         let gated = matches!(o, RegistrationOutcome::Gated { .. });
                         self.gated_registrations += u64::from(gated);
-                        tracing::trace!(seq = input.seq(), residual_m, gate_m, gated, "registration");
+                        tracing::trace!(seq = input.seq(), residual_m, gate_m, sigma_m, gated, "registration");
                         if let Some(port) = self.check_out {
                             let check = RegistrationCheck {
                                 header: Header::new(input.stamp_ns(), "map"),
@@ -563,6 +581,7 @@ impl Stage for EstimateStage {
                                 along_track_m: r.along_track_m,
                                 residual_m,
                                 gate_m,
+                                sigma_m,
                                 accepted: !gated,
                             };
                             out.send(port, &check)?;

@@ -15,6 +15,7 @@ use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
 use crate::lie::Pose3;
 use crate::lines::initial_line;
 use crate::noise::{NoiseModel, RobustKernel};
+use crate::relative::WholeGraphInformation;
 use crate::smoother::{Smoother, SmootherParams};
 use crate::values::{HoughLine, ImuBias, Values, VarId, Variable};
 use crate::{Error, Result};
@@ -45,6 +46,14 @@ pub struct OnlineParams {
     pub registration_gate_m: f64,
     /// Widening of `registration_gate_m` per second without a registration, m/s.
     pub registration_gate_growth_mps: f64,
+    /// Mahalanobis gate on registrations, in standard deviations (0: off): one whose
+    /// along-track residual against the current estimate is further than this many standard
+    /// deviations of its prediction is dropped as a wrong match. The prediction's variance is
+    /// the estimate's marginal variance of the along-track distance between the two states
+    /// (from the whole graph's information, [`crate::relative`]) plus the registration's own
+    /// sigma squared, so the gate is as wide as the estimate is unsure of where the query lies
+    /// on the reference's pass. Applies with `registration_gate_m` when both are set.
+    pub registration_gate_sigmas: f64,
     /// Sigma of the offset across the reference's track that a registration is taken to
     /// imply, m (the relative pose's y; 0 for a 1-D registration): the two submaps share
     /// features, so the passes were close. Right for a rig that drives the same line again,
@@ -107,6 +116,7 @@ impl Default for OnlineParams {
             registration_huber_k: 1.345,
             registration_gate_m: 0.0,
             registration_gate_growth_mps: 0.0,
+            registration_gate_sigmas: 0.0,
             registration_across_sigma_m: 0.0,
             line_min_baseline_m: 1.0,
             line_prior_sigma: 1.0,
@@ -132,23 +142,28 @@ pub fn level_from_specific_force(specific_force: &Vector3<f64>) -> nalgebra::Mat
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RegistrationOutcome {
     /// Added as factors; `residual_m` is the current estimate's along-track distance
-    /// between the two states minus the measured one, before the factor was added, and
-    /// `gate_m` the gate it passed (0: off).
+    /// between the two states minus the measured one, before the factor was added, `gate_m`
+    /// the gate it passed (0: off) and `sigma_m` the residual's predicted standard deviation
+    /// (0: not computed).
     Added {
         /// m.
         residual_m: f64,
         /// m.
         gate_m: f64,
+        /// m.
+        sigma_m: f64,
     },
     /// Its stamps match no two distinct states.
     NoStates,
-    /// Further than the gate `gate_m` from the current estimate (`residual_m` as for
-    /// `Added`): dropped.
+    /// Further than the gate `gate_m` from the current estimate (the fields as for `Added`):
+    /// dropped.
     Gated {
         /// m.
         residual_m: f64,
         /// m.
         gate_m: f64,
+        /// m.
+        sigma_m: f64,
     },
 }
 
@@ -225,6 +240,13 @@ pub struct OnlineEstimator {
     waiting_fixes: Vec<WaitingFix>,
     /// Map fixes that waited for a state and found none within a period.
     unmatched_fixes: u64,
+    /// The whole graph's information at the current estimate, for the Mahalanobis gate: made
+    /// when a registration first needs it after an update, dropped at the next update.
+    information: Option<WholeGraphInformation>,
+    /// Compute every registration's predicted sigma, also where the gate needs none.
+    report_sigmas: bool,
+    /// Graph factors when the smoother last ran (the estimate is their solution).
+    solved_factors: usize,
 }
 
 /// A map fix waiting for its state.
@@ -261,7 +283,17 @@ impl OnlineEstimator {
             solved_query_ns: None,
             waiting_fixes: Vec::new(),
             unmatched_fixes: 0,
+            information: None,
+            report_sigmas: false,
+            solved_factors: 0,
         }
+    }
+
+    /// Computes every registration's predicted sigma ([`RegistrationOutcome`]'s `sigma_m`),
+    /// also those the gate accepts on the registration's own sigma (diagnostics; one whole-graph
+    /// factorisation per update that brings registrations).
+    pub fn report_registration_sigmas(&mut self, on: bool) {
+        self.report_sigmas = on;
     }
 
     fn period_ns(&self) -> i64 {
@@ -416,9 +448,34 @@ impl OnlineEstimator {
         let along_track_m = r.along_track_m + forward_m(j, r.query_stamp_ns)? - forward_m(i, r.reference_stamp_ns)?;
         let (pi, pj) = (self.states[i].pose, self.states[j].pose);
         let residual_m = self.values.pose(pi)?.between(self.values.pose(pj)?).trans_m.x - along_track_m;
-        let gate_m = self.registration_gate_m(r.query_stamp_ns);
-        if gate_m > 0.0 && residual_m.abs() > gate_m {
-            return Ok(RegistrationOutcome::Gated { residual_m, gate_m });
+        let cov = r.covariance.as_ref().filter(|c| c.nrows() == 6 && c.ncols() == 6);
+        let measurement_sigma_m = cov
+            .map(|c| c[(3, 3)].sqrt())
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .unwrap_or(self.params.registration_sigma_m);
+        let (mut gate_m, mut sigma_m) = (self.registration_gate_m(r.query_stamp_ns), 0.0);
+        let sigmas = self.params.registration_gate_sigmas;
+        // The predicted sigma is at least the measurement's: a residual within that many of
+        // them passes whatever the estimate's own uncertainty.
+        if self.report_sigmas || (sigmas > 0.0 && residual_m.abs() > sigmas * measurement_sigma_m) {
+            sigma_m = (self.along_track_variance(pi, pj)? + measurement_sigma_m.powi(2)).sqrt();
+        }
+        let mut gated = gate_m > 0.0 && residual_m.abs() > gate_m;
+        if sigmas > 0.0 {
+            let mahalanobis_m = sigmas * sigma_m.max(measurement_sigma_m);
+            gated |= residual_m.abs() > mahalanobis_m;
+            gate_m = if gate_m > 0.0 {
+                gate_m.min(mahalanobis_m)
+            } else {
+                mahalanobis_m
+            };
+        }
+        if gated {
+            return Ok(RegistrationOutcome::Gated {
+                residual_m,
+                gate_m,
+                sigma_m,
+            });
         }
         self.registered_query_ns = self.registered_query_ns.max(Some(r.query_stamp_ns));
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
@@ -428,7 +485,6 @@ impl OnlineEstimator {
             Some(k) => noise.robust(k),
             None => noise,
         };
-        let cov = r.covariance.as_ref().filter(|c| c.nrows() == 6 && c.ncols() == 6);
         if self.params.registration_full_pose {
             let noise = match cov.map(NoiseModel::from_covariance) {
                 Some(Ok(n)) => n,
@@ -437,8 +493,7 @@ impl OnlineEstimator {
             self.graph
                 .add(BetweenPose::new(pi, pj, r.relative_pose, robust(noise))?);
         } else {
-            let sigma = cov.map(|c| c[(3, 3)].sqrt()).filter(|s| s.is_finite() && *s > 0.0);
-            let noise = NoiseModel::isotropic(1, sigma.unwrap_or(self.params.registration_sigma_m))?;
+            let noise = NoiseModel::isotropic(1, measurement_sigma_m)?;
             self.graph
                 .add(TrackOffset::along(pi, pj, along_track_m, robust(noise))?);
             let across = self.params.registration_across_sigma_m;
@@ -450,7 +505,28 @@ impl OnlineEstimator {
                     .add(TrackOffset::across(pi, pj, r.relative_pose.trans_m.y, noise)?);
             }
         }
-        Ok(RegistrationOutcome::Added { residual_m, gate_m })
+        Ok(RegistrationOutcome::Added {
+            residual_m,
+            gate_m,
+            sigma_m,
+        })
+    }
+
+    /// The estimate's marginal variance of the along-track distance from pose `pi` to pose
+    /// `pj`, m^2, from the whole graph's information as the last update left it.
+    fn along_track_variance(&mut self, pi: VarId, pj: VarId) -> Result<f64> {
+        if self.information.is_none() {
+            self.information = Some(WholeGraphInformation::new(
+                &self.graph,
+                self.solved_factors,
+                &self.values,
+            )?);
+        }
+        let along = TrackOffset::along(pi, pj, 0.0, NoiseModel::isotropic(1, 1.0)?)?;
+        match &self.information {
+            Some(info) => info.variance(&along, &self.values),
+            None => Ok(0.0),
+        }
     }
 
     /// The registration gate for a query at `query_stamp_ns` (0: off): `registration_gate_m`
@@ -660,6 +736,8 @@ impl OnlineEstimator {
         let report = self
             .smoother
             .update(&self.graph, &mut self.values, &[keys.pose, keys.velocity, keys.bias])?;
+        self.information = None;
+        self.solved_factors = self.graph.len();
         let update_s = start.elapsed().as_secs_f64();
         if update_s * self.params.state_rate_hz > 1.0 {
             self.late_updates += 1;
@@ -943,12 +1021,12 @@ mod tests {
             match outcome {
                 // the estimate is within a few cm where the registrations keep it: the wrong
                 // one is 1.5 m from it, the right ones stay well inside the gate
-                RegistrationOutcome::Gated { residual_m, gate_m } if *wrong_m > 0.0 => {
+                RegistrationOutcome::Gated { residual_m, gate_m, .. } if *wrong_m > 0.0 => {
                     assert!((residual_m + 1.5).abs() < 0.1, "{residual_m}");
                     // a second after the last registration
                     assert!((gate_m - 0.6).abs() < 1e-9, "{gate_m}");
                 }
-                RegistrationOutcome::Added { residual_m, gate_m } if *wrong_m == 0.0 => {
+                RegistrationOutcome::Added { residual_m, gate_m, .. } if *wrong_m == 0.0 => {
                     assert!(residual_m.abs() < 0.2, "{residual_m}");
                     assert!(*gate_m >= 0.5, "{gate_m}");
                 }
@@ -963,6 +1041,72 @@ mod tests {
             ungated > without + 0.03,
             "with the wrong one {ungated} m, without {without} m"
         );
+    }
+
+    #[test]
+    fn the_mahalanobis_gate_is_as_wide_as_the_estimate_is_unsure() {
+        // On a wheel 10 % long, every 10 states the truth's along-track distance to the state
+        // `back_s` before; at 5 s one 1.5 m wrong. Gated at 3 sigma of the prediction.
+        let run = |back_s: i64, sigmas: f64| {
+            let mut outcomes = Vec::new();
+            let params = OnlineParams {
+                registration_gate_sigmas: sigmas,
+                ..OnlineParams::default()
+            };
+            let est = drive_circle_params(10, 1.1, params, |est, s| {
+                est.report_registration_sigmas(true);
+                if s.index >= 10 * back_s as u64 && s.index % 10 == 0 {
+                    let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - back_s * 1_000_000_000);
+                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+                    let wrong_m = if s.index == 50 { 1.5 } else { 0.0 };
+                    let r = RegistrationMeasurement {
+                        reference_stamp_ns: t_i,
+                        query_stamp_ns: t_j,
+                        relative_pose: rel,
+                        along_track_m: rel.trans_m.x + wrong_m,
+                        covariance: None,
+                    };
+                    outcomes.push((s.index, wrong_m, est.registration(&r).expect("registration")));
+                }
+            });
+            (end_error_m(&est), outcomes)
+        };
+        let sigma_of = |o: &RegistrationOutcome| match o {
+            RegistrationOutcome::Added { sigma_m, .. } | RegistrationOutcome::Gated { sigma_m, .. } => *sigma_m,
+            RegistrationOutcome::NoStates => f64::NAN,
+        };
+        let (_, one) = run(1, 3.0);
+        let (_, four) = run(4, 3.0);
+        for outcomes in [&one, &four] {
+            for (index, wrong_m, outcome) in outcomes {
+                let sigma = sigma_of(outcome);
+                // at least the registration's own sigma, and the gate three of them
+                assert!(sigma >= 0.05 && sigma.is_finite(), "state {index}: {outcome:?}");
+                match outcome {
+                    RegistrationOutcome::Gated { residual_m, gate_m, .. } if *wrong_m > 0.0 => {
+                        assert!((residual_m + 1.5).abs() < 0.2, "{residual_m}");
+                        assert!((gate_m - 3.0 * sigma).abs() < 1e-12, "{gate_m}");
+                    }
+                    RegistrationOutcome::Added { residual_m, .. } if *wrong_m == 0.0 => {
+                        assert!(residual_m.abs() < 3.0 * sigma, "{residual_m}");
+                    }
+                    other => panic!("state {index}, {wrong_m} m wrong: {other:?}"),
+                }
+            }
+        }
+        // The first registration of each: four seconds of dead reckoning between the two
+        // states are less certain than one.
+        let first = |o: &[(u64, f64, RegistrationOutcome)]| sigma_of(&o[0].2);
+        assert!(
+            first(&four) > 1.5 * first(&one),
+            "4 s back {} m, 1 s back {} m",
+            first(&four),
+            first(&one)
+        );
+        // The gate off takes the wrong one; on, the estimate ends as without it.
+        let (ungated, _) = run(1, 0.0);
+        let (gated, _) = run(1, 3.0);
+        assert!(ungated > gated + 0.03, "taken {ungated} m, gated {gated} m");
     }
 
     #[test]
