@@ -33,7 +33,7 @@ for scenario in training_1 training_2 training_3; do
         for association in truth estimate; do
             base=$out/$scenario-$run-$association
             $g launch graphs/localize.yaml --set recording="$rec" --set method=learned \
-                --set association="$association" --set gate_m=0 --set diagnostics=true "${sets[@]}" \
+                --set association="$association" --set gate_m=0 --set gate_sigmas=0 --set diagnostics=true "${sets[@]}" \
                 --record "$base.run.mcap" > "$base.log" 2>&1
             $g eval "$base.run.mcap" --truth "$rec" --format json > "$base.json"
             reports+=("$base.json")
@@ -51,6 +51,12 @@ print(f"{count('count')} registrations in {len(checks)} runs: {count('right')} r
 wrong = sorted((r for c in checks for r in c["wrong_residuals_m"]), reverse=True)
 if wrong:
     print("wrong ones, |residual| m: " + ", ".join(f"{r:.3f}" for r in wrong))
+right_sigmas = [c["right_sigmas_max"] for c in checks if c.get("right_sigmas_max") is not None]
+if right_sigmas:
+    print(f"smallest Mahalanobis gate under which every right registration fell: {max(right_sigmas):.2f} sigma")
+    wrong_sigmas = sorted((w for c in checks for w in c["wrong_sigmas"]), reverse=True)
+    if wrong_sigmas:
+        print("wrong ones, |residual| / sigma: " + ", ".join(f"{w:.2f}" for w in wrong_sigmas))
 print("| growth (m/s) | smallest base under which every right registration fell (m) |")
 print("|---|---|")
 for k, g in enumerate(checks[0]["gate_bases"]):

@@ -162,14 +162,20 @@ pub struct CheckReport {
     /// registration, the gap being the time since the newest earlier query the estimate
     /// took (or the truth's start).
     pub gate_bases: Vec<GateBase>,
+    /// `max(|residual| / sigma)` over the right registrations with a predicted sigma: the
+    /// smallest Mahalanobis gate (standard deviations) that keeps every right one (`None`:
+    /// no sigmas recorded).
+    pub right_sigmas_max: Option<f64>,
+    /// `|residual| / sigma` of the wrong registrations with a predicted sigma, largest first.
+    pub wrong_sigmas: Vec<f64>,
 }
 
 /// The registration checks recorded in `run` against the truth; `None` when the run has
 /// none with the truth at both stamps.
 pub fn check_report(run: &Recording, truth: &Trajectory, max_gap_ns: i64, tolerance_m: f64) -> Option<CheckReport> {
     let mut topic = String::new();
-    // (accepted, right, |residual|, query stamp)
-    let mut rows: Vec<(bool, bool, f64, i64)> = Vec::new();
+    // (accepted, right, |residual|, query stamp, sigma)
+    let mut rows: Vec<(bool, bool, f64, i64, f64)> = Vec::new();
     run.scan(|m| {
         if m.msg_type != RegistrationCheck::ROS_NAME {
             return;
@@ -183,7 +189,7 @@ pub fn check_report(run: &Recording, truth: &Trajectory, max_gap_ns: i64, tolera
         };
         topic = m.topic.to_owned();
         let right = (c.along_track_m - along).abs() <= tolerance_m;
-        rows.push((c.accepted, right, c.residual_m.abs(), q));
+        rows.push((c.accepted, right, c.residual_m.abs(), q, c.sigma_m));
     });
     if rows.is_empty() {
         return None;
@@ -227,6 +233,14 @@ pub fn check_report(run: &Recording, truth: &Trajectory, max_gap_ns: i64, tolera
                 .fold(f64::NEG_INFINITY, f64::max),
         })
         .collect();
+    let normalised = |right: bool| {
+        rows.iter()
+            .filter(move |r| r.1 == right && r.4 > 0.0 && r.4.is_finite())
+            .map(|r| r.2 / r.4)
+    };
+    let right_sigmas_max = normalised(true).reduce(f64::max);
+    let mut wrong_sigmas: Vec<f64> = normalised(false).collect();
+    wrong_sigmas.sort_by(|a, b| b.total_cmp(a));
     Some(CheckReport {
         topic,
         tolerance_m,
@@ -234,6 +248,8 @@ pub fn check_report(run: &Recording, truth: &Trajectory, max_gap_ns: i64, tolera
         gated: verdicts(false),
         wrong_residuals_m,
         gate_bases,
+        right_sigmas_max,
+        wrong_sigmas,
     })
 }
 
@@ -326,14 +342,14 @@ mod tests {
             let topic = rec
                 .add_topic("estimate/registration_check", RegistrationCheck::ROS_NAME)
                 .expect("topic");
-            // (from s, to s, measured, residual, accepted)
+            // (from s, to s, measured, residual, accepted, predicted sigma)
             let checks = [
-                (1, 3, 2.0, 0.05, true),  // right, gap 3 s from the start
-                (1, 5, 4.02, 0.2, true),  // right, gap 2 s since the query at 3 s
-                (2, 6, 5.0, 0.9, false),  // wrong (truth 4), gated
-                (2, 7, 5.0, -0.1, false), // right (truth 5), gated
+                (1, 3, 2.0, 0.05, true, 0.05), // right, gap 3 s from the start
+                (1, 5, 4.02, 0.2, true, 0.1),  // right, gap 2 s since the query at 3 s
+                (2, 6, 5.0, 0.9, false, 0.1),  // wrong (truth 4), gated
+                (2, 7, 5.0, -0.1, false, 0.0), // right (truth 5), gated; no sigma
             ];
-            for (k, (from, to, along_track_m, residual_m, accepted)) in checks.into_iter().enumerate() {
+            for (k, (from, to, along_track_m, residual_m, accepted, sigma_m)) in checks.into_iter().enumerate() {
                 let c = RegistrationCheck {
                     header: Header::new(to * S, "map"),
                     reference_stamp: Time::from_ns(from * S),
@@ -341,7 +357,7 @@ mod tests {
                     along_track_m,
                     residual_m,
                     gate_m: 0.3,
-                    sigma_m: 0.0,
+                    sigma_m,
                     accepted,
                 };
                 rec.write(topic, k as u64, to * S, &msg::encode(&c)).expect("write");
@@ -372,5 +388,9 @@ mod tests {
             .into_iter()
             .fold(f64::NEG_INFINITY, f64::max);
         assert!((at(0.02) - expected).abs() < 1e-12);
+        // right: 0.05 / 0.05 and 0.2 / 0.1 (the third has no sigma); wrong: 0.9 / 0.1
+        assert_eq!(r.right_sigmas_max, Some(2.0));
+        assert_eq!(r.wrong_sigmas.len(), 1);
+        assert!((r.wrong_sigmas[0] - 9.0).abs() < 1e-12, "{:?}", r.wrong_sigmas);
     }
 }

@@ -430,6 +430,15 @@ fn diagnostics_summary(r: &EvalReport) -> Vec<String> {
             .map(|g| format!("{:.3} m at {} m/s", g.base_m, g.growth_mps))
             .collect();
         lines.push(format!("  smallest gate keeping every right one: {}", bases.join(", ")));
+        if let Some(k) = c.right_sigmas_max {
+            let wrong = match c.wrong_sigmas.first() {
+                Some(w) => format!("; the wrong ones from {w:.2} sigma down"),
+                None => String::new(),
+            };
+            lines.push(format!(
+                "  smallest Mahalanobis gate keeping every right one: {k:.2} sigma{wrong}"
+            ));
+        }
     }
     lines
 }
