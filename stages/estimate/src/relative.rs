@@ -115,34 +115,48 @@ mod tests {
             .collect();
         let mut graph = FactorGraph::new();
         let pose = |k: usize| Pose3::new(Matrix3::identity(), Vector3::new(k as f64, 0.0, 0.0));
-        graph.add(PosePrior::new(ids[0], pose(0), NoiseModel::isotropic(6, 1e-4).unwrap()).unwrap());
+        graph.add(
+            PosePrior::new(ids[0], pose(0), NoiseModel::isotropic(6, 1e-4).expect("test input")).expect("test input"),
+        );
         for k in 1..n {
             // the along-track distance and a tight hold on the rest of the relative pose
             graph.add(
-                TrackOffset::along(ids[k - 1], ids[k], 1.0, NoiseModel::isotropic(1, step_sigma).unwrap()).unwrap(),
+                TrackOffset::along(
+                    ids[k - 1],
+                    ids[k],
+                    1.0,
+                    NoiseModel::isotropic(1, step_sigma).expect("test input"),
+                )
+                .expect("test input"),
             );
             graph.add(
                 crate::factors::BetweenPose::new(
                     ids[k - 1],
                     ids[k],
                     Pose3::new(Matrix3::identity(), Vector3::new(1.0, 0.0, 0.0)),
-                    NoiseModel::diagonal(&[1e-4, 1e-4, 1e-4, 1e3, 1e-4, 1e-4]).unwrap(),
+                    NoiseModel::diagonal(&[1e-4, 1e-4, 1e-4, 1e3, 1e-4, 1e-4]).expect("test input"),
                 )
-                .unwrap(),
+                .expect("test input"),
             );
         }
         if let Some(s) = closure_sigma {
             graph.add(
-                TrackOffset::along(ids[0], ids[n - 1], (n - 1) as f64, NoiseModel::isotropic(1, s).unwrap()).unwrap(),
+                TrackOffset::along(
+                    ids[0],
+                    ids[n - 1],
+                    (n - 1) as f64,
+                    NoiseModel::isotropic(1, s).expect("test input"),
+                )
+                .expect("test input"),
             );
         }
         (graph, values, ids)
     }
 
     fn along_variance(graph: &FactorGraph, values: &Values, a: VarId, b: VarId) -> f64 {
-        let info = WholeGraphInformation::new(graph, graph.len(), values).unwrap();
-        let f = TrackOffset::along(a, b, 0.0, NoiseModel::isotropic(1, 1.0).unwrap()).unwrap();
-        info.variance(&f, values).unwrap()
+        let info = WholeGraphInformation::new(graph, graph.len(), values).expect("test input");
+        let f = TrackOffset::along(a, b, 0.0, NoiseModel::isotropic(1, 1.0).expect("test input")).expect("test input");
+        info.variance(&f, values).expect("test input")
     }
 
     #[test]
@@ -169,8 +183,13 @@ mod tests {
     #[test]
     fn only_a_one_dimensional_residual_has_a_variance() {
         let (graph, values, ids) = chain(3, 0.1, None);
-        let info = WholeGraphInformation::new(&graph, graph.len(), &values).unwrap();
-        let f = PosePrior::new(ids[1], Pose3::identity(), NoiseModel::isotropic(6, 1.0).unwrap()).unwrap();
+        let info = WholeGraphInformation::new(&graph, graph.len(), &values).expect("test input");
+        let f = PosePrior::new(
+            ids[1],
+            Pose3::identity(),
+            NoiseModel::isotropic(6, 1.0).expect("test input"),
+        )
+        .expect("test input");
         assert!(info.variance(&f, &values).is_err());
     }
 }
