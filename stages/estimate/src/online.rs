@@ -15,7 +15,7 @@ use crate::imu::{CombinedImuFactor, ImuParams, ImuPreintegration, NavKeys};
 use crate::lie::Pose3;
 use crate::lines::initial_line;
 use crate::noise::{NoiseModel, RobustKernel};
-use crate::relative::WholeGraphInformation;
+use crate::relative::{WholeGraphInformation, dot};
 use crate::smoother::{Smoother, SmootherParams};
 use crate::values::{HoughLine, ImuBias, Values, VarId, Variable};
 use crate::{Error, Result};
@@ -247,6 +247,32 @@ pub struct OnlineEstimator {
     report_sigmas: bool,
     /// Graph factors when the smoother last ran (the estimate is their solution).
     solved_factors: usize,
+    /// Registrations taken since the last update, which condition the gate of later ones.
+    taken: Vec<Taken>,
+}
+
+/// A registration taken since the last update.
+#[derive(Debug)]
+struct Taken {
+    pi: VarId,
+    pj: VarId,
+    /// Against the estimate as last solved, m.
+    residual_m: f64,
+    /// m^2.
+    measurement_var: f64,
+    /// Known once the gate needed the whole-graph information.
+    gain: Option<Gain>,
+}
+
+/// A taken registration's Kalman update of the estimate's Gaussian.
+#[derive(Debug)]
+struct Gain {
+    /// Covariance (before it) times its gradient.
+    u: Vec<f64>,
+    /// Its predicted variance, m^2.
+    variance: f64,
+    /// Its residual against the estimate before it, m.
+    residual_m: f64,
 }
 
 /// A map fix waiting for its state.
@@ -286,6 +312,7 @@ impl OnlineEstimator {
             information: None,
             report_sigmas: false,
             solved_factors: 0,
+            taken: Vec::new(),
         }
     }
 
@@ -453,17 +480,33 @@ impl OnlineEstimator {
             .map(|c| c[(3, 3)].sqrt())
             .filter(|s| s.is_finite() && *s > 0.0)
             .unwrap_or(self.params.registration_sigma_m);
-        let (mut gate_m, mut sigma_m) = (self.registration_gate_m(r.query_stamp_ns), 0.0);
-        let sigmas = self.params.registration_gate_sigmas;
-        // The predicted sigma is at least the measurement's: a residual within that many of
-        // them passes whatever the estimate's own uncertainty.
-        if self.report_sigmas || (sigmas > 0.0 && residual_m.abs() > sigmas * measurement_sigma_m) {
-            sigma_m = (self.along_track_variance(pi, pj)? + measurement_sigma_m.powi(2)).sqrt();
-        }
+        let mut gate_m = self.registration_gate_m(r.query_stamp_ns);
         let mut gated = gate_m > 0.0 && residual_m.abs() > gate_m;
+        let sigmas = self.params.registration_gate_sigmas;
+        let measurement_var = measurement_sigma_m.powi(2);
+        // The predicted sigma is at least the measurement's, so a residual within that many of
+        // them passes whatever the estimate's own uncertainty, unless registrations taken
+        // since the estimate was solved have moved it: those were all as close (else their
+        // gain is known and conditions this one).
+        let near = |residual: f64, var: f64| residual.abs() <= sigmas * var.sqrt();
+        let settled = near(residual_m, measurement_var)
+            && self
+                .taken
+                .iter()
+                .all(|t| t.gain.is_none() && near(t.residual_m, t.measurement_var));
+        let (mut tested_m, mut sigma_m, mut gain) = (residual_m, 0.0, None);
+        if self.report_sigmas || (sigmas > 0.0 && !settled) {
+            let (conditioned_m, variance, u) = self.conditioned(pi, pj, residual_m, measurement_var)?;
+            (tested_m, sigma_m) = (conditioned_m, variance.sqrt());
+            gain = Some(Gain {
+                u,
+                variance,
+                residual_m: conditioned_m,
+            });
+        }
         if sigmas > 0.0 {
             let mahalanobis_m = sigmas * sigma_m.max(measurement_sigma_m);
-            gated |= residual_m.abs() > mahalanobis_m;
+            gated |= tested_m.abs() > mahalanobis_m;
             gate_m = if gate_m > 0.0 {
                 gate_m.min(mahalanobis_m)
             } else {
@@ -472,11 +515,18 @@ impl OnlineEstimator {
         }
         if gated {
             return Ok(RegistrationOutcome::Gated {
-                residual_m,
+                residual_m: tested_m,
                 gate_m,
                 sigma_m,
             });
         }
+        self.taken.push(Taken {
+            pi,
+            pj,
+            residual_m,
+            measurement_var,
+            gain,
+        });
         self.registered_query_ns = self.registered_query_ns.max(Some(r.query_stamp_ns));
         let huber = (self.params.registration_huber_k > 0.0).then_some(RobustKernel::Huber {
             k: self.params.registration_huber_k,
@@ -506,15 +556,25 @@ impl OnlineEstimator {
             }
         }
         Ok(RegistrationOutcome::Added {
-            residual_m,
+            residual_m: tested_m,
             gate_m,
             sigma_m,
         })
     }
 
-    /// The estimate's marginal variance of the along-track distance from pose `pi` to pose
-    /// `pj`, m^2, from the whole graph's information as the last update left it.
-    fn along_track_variance(&mut self, pi: VarId, pj: VarId) -> Result<f64> {
+    /// A registration between poses `pi` and `pj` whose residual against the estimate as
+    /// last solved is `residual_m` and whose measurement variance is `measurement_var`:
+    /// its residual against that estimate moved by the registrations taken since (each a
+    /// Kalman update of the estimate's Gaussian, in the order they came), its predicted
+    /// variance there (the marginal along-track variance between the two states plus
+    /// `measurement_var`), m^2, and `u`, the covariance times its gradient (its gain).
+    fn conditioned(
+        &mut self,
+        pi: VarId,
+        pj: VarId,
+        residual_m: f64,
+        measurement_var: f64,
+    ) -> Result<(f64, f64, Vec<f64>)> {
         if self.information.is_none() {
             self.information = Some(WholeGraphInformation::new(
                 &self.graph,
@@ -522,11 +582,58 @@ impl OnlineEstimator {
                 &self.values,
             )?);
         }
-        let along = TrackOffset::along(pi, pj, 0.0, NoiseModel::isotropic(1, 1.0)?)?;
-        match &self.information {
-            Some(info) => info.variance(&along, &self.values),
-            None => Ok(0.0),
+        // the gains of the ones taken without one (their residuals were small), in order
+        let mut taken = std::mem::take(&mut self.taken);
+        let mut result = Ok(());
+        for k in 0..taken.len() {
+            if taken[k].gain.is_none() {
+                let t = &taken[k];
+                match self.condition_on(&taken[..k], t.pi, t.pj, t.residual_m, t.measurement_var) {
+                    Ok((residual_m, variance, u)) => {
+                        taken[k].gain = Some(Gain {
+                            u,
+                            variance,
+                            residual_m,
+                        });
+                    }
+                    Err(e) => {
+                        result = Err(e);
+                        break;
+                    }
+                }
+            }
         }
+        let out = result.and_then(|()| self.condition_on(&taken, pi, pj, residual_m, measurement_var));
+        self.taken = taken;
+        out
+    }
+
+    /// [`OnlineEstimator::conditioned`] on the registrations `taken`, whose gains are known.
+    fn condition_on(
+        &self,
+        taken: &[Taken],
+        pi: VarId,
+        pj: VarId,
+        residual_m: f64,
+        measurement_var: f64,
+    ) -> Result<(f64, f64, Vec<f64>)> {
+        let info = self
+            .information
+            .as_ref()
+            .ok_or_else(|| Error::LinearSolve("no whole-graph information for the registration gate".into()))?;
+        let along = TrackOffset::along(pi, pj, 0.0, NoiseModel::isotropic(1, 1.0)?)?;
+        let g = info.gradient(&along, &self.values)?;
+        let mut u = info.solve(&g);
+        let mut residual_m = residual_m;
+        for gain in taken.iter().filter_map(|t| t.gain.as_ref()) {
+            // the estimate moved by -u_k nu_k / S_k, its covariance less u_k u_k^T / S_k
+            let c = dot(&gain.u, &g) / gain.variance;
+            for (x, uk) in u.iter_mut().zip(&gain.u) {
+                *x -= c * uk;
+            }
+            residual_m -= c * gain.residual_m;
+        }
+        Ok((residual_m, dot(&g, &u).max(0.0) + measurement_var, u))
     }
 
     /// The registration gate for a query at `query_stamp_ns` (0: off): `registration_gate_m`
@@ -737,6 +844,7 @@ impl OnlineEstimator {
             .smoother
             .update(&self.graph, &mut self.values, &[keys.pose, keys.velocity, keys.bias])?;
         self.information = None;
+        self.taken.clear();
         self.solved_factors = self.graph.len();
         let update_s = start.elapsed().as_secs_f64();
         if update_s * self.params.state_rate_hz > 1.0 {
@@ -1107,6 +1215,69 @@ mod tests {
         let (ungated, _) = run(1, 0.0);
         let (gated, _) = run(1, 3.0);
         assert!(ungated > gated + 0.03, "taken {ungated} m, gated {gated} m");
+    }
+
+    #[test]
+    fn a_registration_that_contradicts_one_taken_in_the_same_update_is_gated() {
+        // After 8 s of dead reckoning on a true wheel (no registration yet), registrations of
+        // the query at 8 s against the state at 0.5 s: the true distance, then one `wrong_m`
+        // off it.
+        let run = |first: bool, wrong_m: f64, report: bool| {
+            let mut outcomes = Vec::new();
+            let params = OnlineParams {
+                registration_gate_sigmas: 3.0,
+                ..OnlineParams::default()
+            };
+            drive_circle_params(10, 1.0, params, |est, s| {
+                est.report_registration_sigmas(report);
+                if s.index == 80 {
+                    let (t_j, t_i) = (s.stamp_ns, 500_000_000 + est.stamps_ns[0]);
+                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+                    let offsets = if first { vec![0.0, wrong_m] } else { vec![wrong_m] };
+                    for offset in offsets {
+                        let r = RegistrationMeasurement {
+                            reference_stamp_ns: t_i,
+                            query_stamp_ns: t_j,
+                            relative_pose: rel,
+                            along_track_m: rel.trans_m.x + offset,
+                            covariance: None,
+                        };
+                        outcomes.push(est.registration(&r).expect("registration"));
+                    }
+                }
+            });
+            outcomes
+        };
+        // alone, the estimate is unsure enough to take it
+        let alone = run(false, 0.3, false);
+        assert!(matches!(alone[..], [RegistrationOutcome::Added { .. }]), "{alone:?}");
+        // after the right one, it is 0.3 m from where that one moved the estimate, whose
+        // uncertainty it also took away
+        let after = run(true, 0.3, false);
+        match after[..] {
+            [
+                RegistrationOutcome::Added { sigma_m: first, .. },
+                RegistrationOutcome::Gated {
+                    residual_m, sigma_m, ..
+                },
+            ] => {
+                // within three of its own sigmas of the estimate: taken without the solve,
+                // whose gain the second one's test then computes
+                assert_eq!(first, 0.0);
+                assert!(sigma_m < 0.08, "{sigma_m}");
+                assert!((residual_m + 0.3).abs() < 0.05, "{residual_m}");
+            }
+            _ => panic!("{after:?}"),
+        }
+        // the same verdicts with every sigma computed as it comes (diagnostics)
+        let reported = run(true, 0.3, true);
+        match reported[..] {
+            [
+                RegistrationOutcome::Added { sigma_m: first, .. },
+                RegistrationOutcome::Gated { sigma_m, .. },
+            ] => assert!(first > 0.1 && sigma_m < 0.08, "{reported:?}"),
+            _ => panic!("{reported:?}"),
+        }
     }
 
     #[test]

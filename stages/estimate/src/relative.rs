@@ -65,6 +65,26 @@ impl WholeGraphInformation {
     /// A factor that is not one-dimensional, cannot be evaluated, or reaches a variable this
     /// information does not hold.
     pub fn variance(&self, factor: &dyn Factor, values: &Values) -> Result<f64> {
+        let g = self.gradient(factor, values)?;
+        let x = self.solve(&g);
+        Ok(dot(&g, &x).max(0.0))
+    }
+
+    /// `H^-1 v` for a vector `v` over every variable (system order, as
+    /// [`WholeGraphInformation::gradient`] gives).
+    #[must_use]
+    pub fn solve(&self, v: &[f64]) -> Vec<f64> {
+        let mut x = v.to_vec();
+        self.factorization.solve_in_place(&mut x);
+        x
+    }
+
+    /// The gradient `g` of the one-dimensional residual of `factor` at `values`, over every
+    /// variable in system order (zero but for the factor's variables).
+    ///
+    /// # Errors
+    /// As [`WholeGraphInformation::variance`].
+    pub fn gradient(&self, factor: &dyn Factor, values: &Values) -> Result<Vec<f64>> {
         if factor.noise().dim() != 1 {
             return Err(Error::BadMeasurement(format!(
                 "the variance of a {}-dimensional residual",
@@ -85,10 +105,14 @@ impl WholeGraphInformation {
                 g[off + c] += jac[(0, c)];
             }
         }
-        let mut x = g.clone();
-        self.factorization.solve_in_place(&mut x);
-        Ok(g.iter().zip(&x).map(|(a, b)| a * b).sum::<f64>().max(0.0))
+        Ok(g)
     }
+}
+
+/// `a . b`.
+#[must_use]
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 #[cfg(test)]
