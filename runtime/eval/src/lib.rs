@@ -22,7 +22,7 @@ mod trajectory;
 mod wheel;
 
 pub use trajectory::{PoseTopicKind, Trajectory, TrajectoryError, pose_topics, read_tum, write_tum};
-pub use wheel::{WheelFit, WheelTrack, fit_wheel};
+pub use wheel::{WheelFit, WheelTrack, fit_wheel, wheel_period_errors};
 
 use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;

@@ -123,6 +123,62 @@ pub fn fit_wheel(wheel: &WheelTrack, truth: &Trajectory, max_gap_ns: i64) -> Whe
     fit
 }
 
+/// The wheel's along-track error over consecutive periods of `period_ns`, scaled by `scale`:
+/// for each period in which the wheel moved and the truth covers every step, `scale` times the
+/// wheel's distance minus the truth's forward displacement, both summed over the period's steps
+/// (as [`fit_wheel`] compares them). Their RMS is the noise of the wheel's distance per period,
+/// the truth's own position noise included (it does not telescope away at a period's two ends):
+/// an upper bound on what an estimator's wheel sigma per state should be.
+pub fn wheel_period_errors(
+    wheel: &WheelTrack,
+    truth: &Trajectory,
+    scale: f64,
+    period_ns: i64,
+    max_gap_ns: i64,
+) -> Vec<f64> {
+    let mut errors = Vec::new();
+    let Some(&first) = wheel.stamps_ns.first() else {
+        return errors;
+    };
+    let period_ns = period_ns.max(1);
+    // (period index, error so far, moved, covered)
+    let mut current: Option<(i64, f64, bool, bool)> = None;
+    let steps = wheel.stamps_ns.windows(2).zip(wheel.distances_m.windows(2));
+    for (t, d) in steps {
+        let index = (t[0] - first) / period_ns;
+        if let Some((k, error, moved, covered)) = current
+            && k != index
+        {
+            if moved && covered {
+                errors.push(error);
+            }
+            current = None;
+        }
+        let (_, error, moved, covered) = current.get_or_insert((index, 0.0, false, true));
+        let step = d[1] - d[0];
+        if step == 0.0 {
+            continue;
+        }
+        let forward = match (truth.interpolate(t[0], max_gap_ns), truth.interpolate(t[1], max_gap_ns)) {
+            (Some(a), Some(b)) => (a.rotation * Vector3::x() + b.rotation * Vector3::x())
+                .try_normalize(1e-9)
+                .map(|f| (b.translation.vector - a.translation.vector).dot(&f)),
+            _ => None,
+        };
+        match forward {
+            Some(along) => {
+                *error += scale * step - along;
+                *moved = true;
+            }
+            None => *covered = false,
+        }
+    }
+    if let Some((_, error, true, true)) = current {
+        errors.push(error);
+    }
+    errors
+}
+
 #[cfg(test)]
 mod tests {
     use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -209,6 +265,40 @@ mod tests {
         let wheel = wheel_reading(1.0, |_| 0.0);
         let scale = fit_wheel(&wheel, &truth, 100_000_000).scale().expect("moved");
         assert!((scale - 1.0).abs() < 2e-3, "{scale}");
+    }
+
+    #[test]
+    fn the_period_errors_are_the_wheel_noise_summed_over_each_period() {
+        // truth at 20 Hz, the wheel at 50 Hz with 1 mm of white noise on each reading: over a
+        // 100 ms period the error is the difference of two readings' noise (sd 1.4 mm)
+        let (stamps_ns, poses, _) = drive(50_000_000);
+        let truth = Trajectory { stamps_ns, poses };
+        let mut state = 99u64;
+        let mut noise = Vec::new();
+        for _ in 0..1000 {
+            let g: f64 = (0..12)
+                .map(|_| {
+                    state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+                    (state >> 11) as f64 / (1u64 << 53) as f64
+                })
+                .sum::<f64>()
+                - 6.0;
+            noise.push(0.001 * g);
+        }
+        let wheel = wheel_reading(1.0, |i| noise[i]);
+        let errors = wheel_period_errors(&wheel, &truth, 1.0, 100_000_000, 100_000_000);
+        // 16 s of driving in 100 ms periods, but for the one with the reversal's stop
+        assert!(errors.len() > 150, "{}", errors.len());
+        let rms = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+        assert!((rms - 0.0014).abs() < 0.0004, "{rms}");
+        // a wheel reading 2 % short, scaled back, has no error; unscaled, 2 % of each period's
+        // 5 cm
+        let short = wheel_reading(1.0 / 1.02, |_| 0.0);
+        let scaled = wheel_period_errors(&short, &truth, 1.02, 100_000_000, 100_000_000);
+        assert!(scaled.iter().all(|e| e.abs() < 2e-4), "{scaled:?}");
+        let unscaled = wheel_period_errors(&short, &truth, 1.0, 100_000_000, 100_000_000);
+        let largest = unscaled.iter().fold(0.0_f64, |m, e| m.max(e.abs()));
+        assert!((largest - 0.05 * (1.0 - 1.0 / 1.02)).abs() < 2e-4, "{largest}");
     }
 
     #[test]

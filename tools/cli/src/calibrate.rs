@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Result, bail};
-use gprflow::eval::{Trajectory, WheelFit, WheelTrack, fit_wheel};
+use gprflow::eval::{Trajectory, WheelFit, WheelTrack, fit_wheel, wheel_period_errors};
 use gprflow::record::Recording;
 use serde::Serialize;
 
@@ -21,6 +21,8 @@ pub struct CalibrateWheelArgs {
     pub truth_topic: String,
     /// Longest truth gap to interpolate over, ms.
     pub max_gap_ms: f64,
+    /// Period of the along-track error figure, ms.
+    pub period_ms: f64,
     /// Print JSON instead of text.
     pub json: bool,
 }
@@ -32,6 +34,13 @@ struct Report {
     combined: WheelFit,
     /// `ingest`'s `wheel_scale` for this rig.
     wheel_scale: f64,
+    /// Period of the error figure, ms.
+    period_ms: f64,
+    /// RMS over every recording's periods of the scaled wheel's along-track error against the
+    /// truth, m (the truth's noise included).
+    period_error_rms_m: Option<f64>,
+    /// Periods in it.
+    periods: usize,
 }
 
 /// Fits the wheel scale over `args.recordings` and prints it per recording and combined.
@@ -43,11 +52,15 @@ pub fn calibrate_wheel(args: &CalibrateWheelArgs) -> Result<ExitCode> {
     if !(args.max_gap_ms.is_finite() && args.max_gap_ms > 0.0) {
         bail!("--max-gap-ms must be finite and > 0, got {}", args.max_gap_ms);
     }
+    if !(args.period_ms.is_finite() && args.period_ms > 0.0) {
+        bail!("--period-ms must be finite and > 0, got {}", args.period_ms);
+    }
     if args.recordings.is_empty() {
         bail!("no recording given");
     }
     let max_gap_ns = (args.max_gap_ms * 1e6) as i64;
     let mut recordings = Vec::new();
+    let mut tracks = Vec::new();
     let mut combined = WheelFit::default();
     for path in &args.recordings {
         let rec = Recording::open(path)?;
@@ -56,14 +69,24 @@ pub fn calibrate_wheel(args: &CalibrateWheelArgs) -> Result<ExitCode> {
         let fit = fit_wheel(&wheel, &truth, max_gap_ns);
         recordings.push((path.display().to_string(), fit, fit.scale()));
         combined = combined.with(fit);
+        tracks.push((wheel, truth));
     }
     let Some(wheel_scale) = combined.scale() else {
         bail!("the wheel never moved while the truth covered it: nothing to calibrate against");
     };
+    let period_ns = (args.period_ms * 1e6) as i64;
+    let errors: Vec<f64> = tracks
+        .iter()
+        .flat_map(|(wheel, truth)| wheel_period_errors(wheel, truth, wheel_scale, period_ns, max_gap_ns))
+        .collect();
     let report = Report {
         recordings,
         combined,
         wheel_scale,
+        period_ms: args.period_ms,
+        period_error_rms_m: (!errors.is_empty())
+            .then(|| (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt()),
+        periods: errors.len(),
     };
     let mut out = std::io::stdout().lock();
     if args.json {
@@ -83,5 +106,14 @@ pub fn calibrate_wheel(args: &CalibrateWheelArgs) -> Result<ExitCode> {
         "combined: scale {:.5} over {:.3} m of wheel travel\n--set wheel_scale={:.5}  (ingest's wheel_scale)",
         report.wheel_scale, report.combined.wheel_m, report.wheel_scale
     )?;
+    if let Some(rms) = report.period_error_rms_m {
+        writeln!(
+            out,
+            "along-track error per {} ms with that scale: RMS {:.2} mm over {} periods (the truth's noise included: a bound for the estimator's wheel_sigma_m)",
+            report.period_ms,
+            rms * 1e3,
+            report.periods
+        )?;
+    }
     Ok(ExitCode::SUCCESS)
 }

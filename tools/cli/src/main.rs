@@ -377,7 +377,9 @@ enum Command {
     /// The wheel's scale against ground truth: the graphs' `wheel_scale` for a rig.
     ///
     /// True ground metres per recorded wheel metre over recordings of one rig: the value for
-    /// the graphs' `wheel_scale` variable (ingest's `wheel_scale`).
+    /// the graphs' `wheel_scale` variable (ingest's `wheel_scale`); and, with that scale, the
+    /// RMS of the wheel's along-track error per period (the estimator's state period by
+    /// default), the truth's own noise included: a bound for the estimator's `wheel_sigma_m`.
     ///
     /// Example (tools/scripts/calibrate-wheel.sh calibrates the simulated rig on the training
     /// runs):
@@ -396,6 +398,9 @@ enum Command {
         /// Longest truth gap to interpolate over, ms.
         #[arg(long, default_value_t = 200.0)]
         max_gap_ms: f64,
+        /// Period of the error figure, ms (the estimator's state period).
+        #[arg(long, default_value_t = 100.0)]
+        period_ms: f64,
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
@@ -749,12 +754,14 @@ fn main() -> ExitCode {
             wheel_topic,
             truth_topic,
             max_gap_ms,
+            period_ms,
             json,
         } => gprflow_cli::calibrate::calibrate_wheel(&gprflow_cli::calibrate::CalibrateWheelArgs {
             recordings,
             wheel_topic,
             truth_topic,
             max_gap_ms,
+            period_ms,
             json,
         }),
         Command::Convert {
