@@ -69,6 +69,11 @@ fn calibrate_wheel_measures_the_rigs_scale_and_the_odometry_takes_it() {
     let scale = c["wheel_scale"].as_f64().expect("wheel_scale");
     assert!((scale - 1.01).abs() < 0.003, "{c}");
     assert!(c["combined"]["wheel_m"].as_f64().expect("wheel_m") > 40.0, "{c}");
+    // the error per state period with that scale: the total station's 3 mm at both ends of
+    // each period and the little the wheel adds (graphs/localize.yaml's wheel_sigma_m)
+    let per_period = c["period_error_rms_m"].as_f64().expect("period_error_rms_m");
+    assert!((0.003..0.006).contains(&per_period), "{c}");
+    assert!(c["periods"].as_u64().expect("periods") > 500, "{c}");
     // odometry on the recording's own distances, then calibrated
     let along = |wheel_scale: f64| {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -232,7 +237,7 @@ fn the_stretch_search_and_the_gate_on_a_by_hand_run() {
     let (n, log, ate, stretched, gated) = localise("graphs/localize.yaml", &["method=learned", "diagnostics=true"]);
     let (n_off, log_off, ate_off, stretched_off, gated_off) = localise(
         "graphs/localize.yaml",
-        &["method=learned", "stretch_steps=0", "gate_m=0", "diagnostics=true"],
+        &["method=learned", "stretch_steps=0", "gate_sigmas=0", "diagnostics=true"],
     );
     let (_, _, ate_odo, _, _) = localise("graphs/odometry.yaml", &[]);
     assert!(
