@@ -655,6 +655,14 @@ impl Stage for EstimateStage {
                 "estimate: registrations further than the registration gate from the estimate, dropped"
             );
         }
+        let (solves, solve_s) = self.est.gate_solves();
+        if solves > 0 {
+            tracing::info!(
+                solves,
+                solve_s,
+                "estimate: whole-graph factorisations for the registration gate"
+            );
+        }
         if self.est.late_updates() > 0 {
             tracing::warn!(
                 late = self.est.late_updates(),

@@ -249,6 +249,8 @@ pub struct OnlineEstimator {
     solved_factors: usize,
     /// Registrations taken since the last update, which condition the gate of later ones.
     taken: Vec<Taken>,
+    /// Whole-graph factorisations made for the gate, and their wall time, s.
+    gate_solves: (u64, f64),
 }
 
 /// A registration taken since the last update.
@@ -313,6 +315,7 @@ impl OnlineEstimator {
             report_sigmas: false,
             solved_factors: 0,
             taken: Vec::new(),
+            gate_solves: (0, 0.0),
         }
     }
 
@@ -338,6 +341,13 @@ impl OnlineEstimator {
     #[must_use]
     pub fn unmatched_map_fixes(&self) -> u64 {
         self.unmatched_fixes
+    }
+
+    /// Whole-graph factorisations made for the registration gate so far, and their wall
+    /// time, s.
+    #[must_use]
+    pub fn gate_solves(&self) -> (u64, f64) {
+        self.gate_solves
     }
 
     /// Number of states.
@@ -576,11 +586,14 @@ impl OnlineEstimator {
         measurement_var: f64,
     ) -> Result<(f64, f64, Vec<f64>)> {
         if self.information.is_none() {
+            let start = Instant::now();
             self.information = Some(WholeGraphInformation::new(
                 &self.graph,
                 self.solved_factors,
                 &self.values,
             )?);
+            self.gate_solves.0 += 1;
+            self.gate_solves.1 += start.elapsed().as_secs_f64();
         }
         // the gains of the ones taken without one (their residuals were small), in order
         let mut taken = std::mem::take(&mut self.taken);
