@@ -190,7 +190,8 @@ message! {
         pub query_stamp: Time,
         /// The measured along-track distance between the two stamps, m.
         pub along_track_m: f64,
-        /// The estimate's along-track distance minus the measured one, m.
+        /// The estimate's along-track distance minus the measured one, m (with `sigma_m`,
+        /// the estimate as the registrations taken since it was last solved move it).
         pub residual_m: f64,
         /// The gate at that moment, m (0: off).
         pub gate_m: f64,

@@ -142,9 +142,10 @@ pub fn level_from_specific_force(specific_force: &Vector3<f64>) -> nalgebra::Mat
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RegistrationOutcome {
     /// Added as factors; `residual_m` is the current estimate's along-track distance
-    /// between the two states minus the measured one, before the factor was added, `gate_m`
-    /// the gate it passed (0: off) and `sigma_m` the residual's predicted standard deviation
-    /// (0: not computed).
+    /// between the two states minus the measured one, before the factor was added (where
+    /// `sigma_m` was computed, the estimate as the registrations taken since it was solved
+    /// move it), `gate_m` the gate it passed (0: off) and `sigma_m` the residual's predicted
+    /// standard deviation (0: not computed).
     Added {
         /// m.
         residual_m: f64,
