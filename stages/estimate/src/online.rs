@@ -1100,6 +1100,19 @@ mod tests {
         }
     }
 
+    /// The truth's relative pose from `t_i` to `t_j` on the circle as a registration, its
+    /// along-track distance `offset_m` off.
+    fn truth_registration(t_i: i64, t_j: i64, offset_m: f64) -> RegistrationMeasurement {
+        let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
+        RegistrationMeasurement {
+            reference_stamp_ns: t_i,
+            query_stamp_ns: t_j,
+            relative_pose: rel,
+            along_track_m: rel.trans_m.x + offset_m,
+            covariance: None,
+        }
+    }
+
     #[test]
     fn a_registration_far_from_the_estimate_is_gated() {
         // Every 10 states the true along-track distance to the state 1 s before, on a wheel
@@ -1113,20 +1126,12 @@ mod tests {
             };
             let est = drive_circle_params(10, 1.1, params, |est, s| {
                 if s.index >= 10 && s.index % 10 == 0 {
-                    let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - 1_000_000_000);
-                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
                     let wrong_m = match (s.index, wrong) {
                         (50, Some(m)) => m,
                         (50, None) => return,
                         _ => 0.0,
                     };
-                    let r = RegistrationMeasurement {
-                        reference_stamp_ns: t_i,
-                        query_stamp_ns: t_j,
-                        relative_pose: rel,
-                        along_track_m: rel.trans_m.x + wrong_m,
-                        covariance: None,
-                    };
+                    let r = truth_registration(s.stamp_ns - 1_000_000_000, s.stamp_ns, wrong_m);
                     outcomes.push((wrong_m, est.registration(&r).expect("registration")));
                 }
             });
@@ -1178,16 +1183,8 @@ mod tests {
             let est = drive_circle_params(10, 1.1, params, |est, s| {
                 est.report_registration_sigmas(true);
                 if s.index >= 10 * back_s as u64 && s.index % 10 == 0 {
-                    let (t_j, t_i) = (s.stamp_ns, s.stamp_ns - back_s * 1_000_000_000);
-                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
                     let wrong_m = if s.index == 50 { 1.5 } else { 0.0 };
-                    let r = RegistrationMeasurement {
-                        reference_stamp_ns: t_i,
-                        query_stamp_ns: t_j,
-                        relative_pose: rel,
-                        along_track_m: rel.trans_m.x + wrong_m,
-                        covariance: None,
-                    };
+                    let r = truth_registration(s.stamp_ns - back_s * 1_000_000_000, s.stamp_ns, wrong_m);
                     outcomes.push((s.index, wrong_m, est.registration(&r).expect("registration")));
                 }
             });
@@ -1245,17 +1242,9 @@ mod tests {
             drive_circle_params(10, 1.0, params, |est, s| {
                 est.report_registration_sigmas(report);
                 if s.index == 80 {
-                    let (t_j, t_i) = (s.stamp_ns, 500_000_000 + est.stamps_ns[0]);
-                    let rel = circle_truth(t_i as f64 * 1e-9).between(&circle_truth(t_j as f64 * 1e-9));
                     let offsets = if first { vec![0.0, wrong_m] } else { vec![wrong_m] };
                     for offset in offsets {
-                        let r = RegistrationMeasurement {
-                            reference_stamp_ns: t_i,
-                            query_stamp_ns: t_j,
-                            relative_pose: rel,
-                            along_track_m: rel.trans_m.x + offset,
-                            covariance: None,
-                        };
+                        let r = truth_registration(500_000_000 + est.stamps_ns[0], s.stamp_ns, offset);
                         outcomes.push(est.registration(&r).expect("registration"));
                     }
                 }
