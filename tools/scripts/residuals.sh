@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# The registration gate's data (graphs/localize.yaml `gate_m`, `gate_growth_mps`): the learned
-# model localises the training scenarios' runs that pass ground twice (forward_backward and
-# by_hand of training_1, _2 and the held-out _3; never the evaluation worlds), with the gate
-# off, oracle association and the estimate's own, recording the estimator's registration checks
-# (graphs/localize.yaml `diagnostics=true`); `gprflow eval` checks each against the truth and
-# gives the smallest gate that keeps every right registration, and this script takes the
-# largest over the runs.
+# The registration gate's data (graphs/localize.yaml `gate_sigmas`, and the older `gate_m`,
+# `gate_growth_mps`): the learned model localises the training scenarios' runs that pass ground
+# twice (forward_backward and by_hand of training_1, _2 and the held-out _3; never the evaluation
+# worlds), with the gates off, oracle association and the estimate's own, recording the
+# estimator's registration checks with each residual's predicted sigma (graphs/localize.yaml
+# `diagnostics=true`); `gprflow eval` checks each against the truth and gives the smallest gate
+# that keeps every right registration (in sigmas, and in metres per growth rate), and this script
+# takes the largest over the runs.
 #
 #   tools/scripts/residuals.sh                  # out/residuals: recordings, logs, the table
 #   tools/scripts/residuals.sh --set stretch_steps=0   # without the stretch search (on by default)
