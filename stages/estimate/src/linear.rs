@@ -591,6 +591,10 @@ fn gram_portable(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mu
     }
 }
 
+/// Damping, relative to the largest diagonal entry, of a Hessian with a direction no factor
+/// observes, for its covariance ([`Factorization::for_covariance`]).
+pub const FREE_DIRECTION_DAMPING: f64 = 1e-9;
+
 /// A numeric Cholesky factorisation of `H + lambda I`, with the buffers to redo it.
 pub struct Factorization {
     symbolic: Arc<SymbolicCholesky<usize>>,
@@ -624,6 +628,24 @@ impl Factorization {
         };
         f.refactor(structure, hessian, lambda)?;
         Ok(f)
+    }
+
+    /// Factorises `H` for a covariance: undamped, or where a direction no factor observes
+    /// (a line seen from one side only) leaves it singular, with the least damping that makes
+    /// a factor (a relative [`FREE_DIRECTION_DAMPING`] of the largest diagonal entry: a very
+    /// weak prior on that direction), so that whether a covariance exists does not depend on
+    /// rounding.
+    ///
+    /// # Errors
+    /// [`Error::LinearSolve`] when even the damped matrix is not positive definite.
+    pub fn for_covariance(structure: &HessianStructure, hessian: &[f64]) -> Result<Self> {
+        Self::new(structure, hessian, 0.0).or_else(|_| {
+            Self::new(
+                structure,
+                hessian,
+                FREE_DIRECTION_DAMPING * structure.max_diagonal(hessian),
+            )
+        })
     }
 
     /// Factorises `H + lambda I` again, reusing the buffers when `structure` is the one this

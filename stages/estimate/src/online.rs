@@ -505,16 +505,14 @@ impl OnlineEstimator {
                 .taken
                 .iter()
                 .all(|t| t.gain.is_none() && near(t.residual_m, t.measurement_var));
-        let (mut tested_m, mut sigma_m, mut gain) = (residual_m, 0.0, None);
-        if self.report_sigmas || (sigmas > 0.0 && !settled) {
-            let (conditioned_m, variance, u) = self.conditioned(pi, pj, residual_m, measurement_var)?;
-            (tested_m, sigma_m) = (conditioned_m, variance.sqrt());
-            gain = Some(Gain {
-                u,
-                variance,
-                residual_m: conditioned_m,
-            });
-        }
+        let gain = if self.report_sigmas || (sigmas > 0.0 && !settled) {
+            Some(self.conditioned(pi, pj, residual_m, measurement_var)?)
+        } else {
+            None
+        };
+        let (tested_m, sigma_m) = gain
+            .as_ref()
+            .map_or((residual_m, 0.0), |g| (g.residual_m, g.variance.sqrt()));
         if sigmas > 0.0 {
             let mahalanobis_m = sigmas * sigma_m.max(measurement_sigma_m);
             gated |= tested_m.abs() > mahalanobis_m;
@@ -573,19 +571,13 @@ impl OnlineEstimator {
         })
     }
 
-    /// A registration between poses `pi` and `pj` whose residual against the estimate as
-    /// last solved is `residual_m` and whose measurement variance is `measurement_var`:
-    /// its residual against that estimate moved by the registrations taken since (each a
-    /// Kalman update of the estimate's Gaussian, in the order they came), its predicted
-    /// variance there (the marginal along-track variance between the two states plus
-    /// `measurement_var`), m^2, and `u`, the covariance times its gradient (its gain).
-    fn conditioned(
-        &mut self,
-        pi: VarId,
-        pj: VarId,
-        residual_m: f64,
-        measurement_var: f64,
-    ) -> Result<(f64, f64, Vec<f64>)> {
+    /// The gain of a registration between poses `pi` and `pj` whose residual against the
+    /// estimate as last solved is `residual_m` and whose measurement variance is
+    /// `measurement_var`: its residual against that estimate moved by the registrations taken
+    /// since (each a Kalman update of the estimate's Gaussian, in the order they came), its
+    /// predicted variance there (the marginal along-track variance between the two states plus
+    /// `measurement_var`), and the covariance times its gradient.
+    fn conditioned(&mut self, pi: VarId, pj: VarId, residual_m: f64, measurement_var: f64) -> Result<Gain> {
         if self.information.is_none() {
             let start = Instant::now();
             self.information = Some(WholeGraphInformation::new(
@@ -598,26 +590,16 @@ impl OnlineEstimator {
         }
         // the gains of the ones taken without one (their residuals were small), in order
         let mut taken = std::mem::take(&mut self.taken);
-        let mut result = Ok(());
-        for k in 0..taken.len() {
-            if taken[k].gain.is_none() {
-                let t = &taken[k];
-                match self.condition_on(&taken[..k], t.pi, t.pj, t.residual_m, t.measurement_var) {
-                    Ok((residual_m, variance, u)) => {
-                        taken[k].gain = Some(Gain {
-                            u,
-                            variance,
-                            residual_m,
-                        });
-                    }
-                    Err(e) => {
-                        result = Err(e);
-                        break;
-                    }
+        let out = (|| {
+            for k in 0..taken.len() {
+                if taken[k].gain.is_none() {
+                    let t = &taken[k];
+                    let gain = self.condition_on(&taken[..k], t.pi, t.pj, t.residual_m, t.measurement_var)?;
+                    taken[k].gain = Some(gain);
                 }
             }
-        }
-        let out = result.and_then(|()| self.condition_on(&taken, pi, pj, residual_m, measurement_var));
+            self.condition_on(&taken, pi, pj, residual_m, measurement_var)
+        })();
         self.taken = taken;
         out
     }
@@ -630,7 +612,7 @@ impl OnlineEstimator {
         pj: VarId,
         residual_m: f64,
         measurement_var: f64,
-    ) -> Result<(f64, f64, Vec<f64>)> {
+    ) -> Result<Gain> {
         let info = self
             .information
             .as_ref()
@@ -647,7 +629,11 @@ impl OnlineEstimator {
             }
             residual_m -= c * gain.residual_m;
         }
-        Ok((residual_m, dot(&g, &u).max(0.0) + measurement_var, u))
+        Ok(Gain {
+            variance: dot(&g, &u).max(0.0) + measurement_var,
+            u,
+            residual_m,
+        })
     }
 
     /// The registration gate for a query at `query_stamp_ns` (0: off): `registration_gate_m`

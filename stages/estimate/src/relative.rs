@@ -22,10 +22,6 @@ use crate::linear::{Factorization, HessianStructure, Ordering, linearize};
 use crate::values::Values;
 use crate::{Error, Result};
 
-/// Damping, relative to the largest diagonal entry, of an information matrix with a direction
-/// no factor observes (a line seen from one side only): a very weak prior on it.
-const FREE_DIRECTION_DAMPING: f64 = 1e-9;
-
 /// The whole graph's information at one set of values, factorised (see the module docs).
 #[derive(Debug)]
 pub struct WholeGraphInformation {
@@ -45,13 +41,7 @@ impl WholeGraphInformation {
         let ordering = Ordering::all(values);
         let structure = HessianStructure::new(graph, &all, values, &ordering)?;
         let ne = linearize(graph, &all, values, &structure)?;
-        let factorization = Factorization::new(&structure, &ne.hessian, 0.0).or_else(|_| {
-            Factorization::new(
-                &structure,
-                &ne.hessian,
-                FREE_DIRECTION_DAMPING * structure.max_diagonal(&ne.hessian),
-            )
-        })?;
+        let factorization = Factorization::for_covariance(&structure, &ne.hessian)?;
         Ok(Self {
             structure,
             factorization,

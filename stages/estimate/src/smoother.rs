@@ -44,10 +44,6 @@ use crate::marginal::{MarginalPrior, marginalise, normal_equations};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
-/// Damping, relative to the largest diagonal entry, of a window Hessian that has no Cholesky
-/// factor undamped, for the newest state's covariance.
-const COVARIANCE_DAMPING: f64 = 1e-9;
-
 /// Which smoother runs the updates (the `estimate` stage's `smoother` parameter:
 /// `incremental` or `fixed_lag`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
@@ -408,15 +404,11 @@ impl FixedLagSmoother {
             levenberg_marquardt_keep_hessian(&local, &all, values, &ordering, &lm, &mut self.structure)?
         };
         self.newest_cov = None;
-        // From the solver's last linearisation (at most one accepted step from the solution).
-        // A window with a direction its factors leave free (a line seen from one side only) has
-        // no Cholesky factor: it gets the least damping that makes one (a relative 1e-9 of the
-        // largest diagonal entry, as a very weak prior on that direction), so that whether the
-        // pose's covariance is published does not depend on rounding.
+        // From the solver's last linearisation (at most one accepted step from the solution),
+        // weakly damped where a direction is free (a line seen from one side only).
         if self.params.newest_covariance
             && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
-            && let Ok(f) = Factorization::new(st, &ne.hessian, 0.0)
-                .or_else(|_| Factorization::new(st, &ne.hessian, COVARIANCE_DAMPING * st.max_diagonal(&ne.hessian)))
+            && let Ok(f) = Factorization::for_covariance(st, &ne.hessian)
         {
             self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
         }
