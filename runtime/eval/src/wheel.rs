@@ -96,6 +96,18 @@ impl WheelFit {
     }
 }
 
+/// The truth's displacement from `t0_ns` to `t1_ns` along the body's mean forward axis over
+/// that interval, m: `None` when the truth has a longer gap than `max_gap_ns` at either end,
+/// or the body turned half round (no mean axis).
+fn forward_displacement(truth: &Trajectory, t0_ns: i64, t1_ns: i64, max_gap_ns: i64) -> Option<f64> {
+    let (a, b) = (
+        truth.interpolate(t0_ns, max_gap_ns)?,
+        truth.interpolate(t1_ns, max_gap_ns)?,
+    );
+    let forward = (a.rotation * Vector3::x() + b.rotation * Vector3::x()).try_normalize(1e-9)?;
+    Some((b.translation.vector - a.translation.vector).dot(&forward))
+}
+
 /// Compares each wheel step with the truth's forward displacement over it; the truth is
 /// interpolated across gaps of at most `max_gap_ns`.
 pub fn fit_wheel(wheel: &WheelTrack, truth: &Trajectory, max_gap_ns: i64) -> WheelFit {
@@ -106,16 +118,10 @@ pub fn fit_wheel(wheel: &WheelTrack, truth: &Trajectory, max_gap_ns: i64) -> Whe
         if step == 0.0 {
             continue;
         }
-        let (Some(a), Some(b)) = (truth.interpolate(t[0], max_gap_ns), truth.interpolate(t[1], max_gap_ns)) else {
+        let Some(along) = forward_displacement(truth, t[0], t[1], max_gap_ns) else {
             fit.skipped += 1;
             continue;
         };
-        // the mean forward axis (none when the body turned half round within one step)
-        let Some(forward) = (a.rotation * Vector3::x() + b.rotation * Vector3::x()).try_normalize(1e-9) else {
-            fit.skipped += 1;
-            continue;
-        };
-        let along = (b.translation.vector - a.translation.vector).dot(&forward);
         fit.ground_m += step.signum() * along;
         fit.wheel_m += step.abs();
         fit.intervals += 1;
@@ -159,13 +165,7 @@ pub fn wheel_period_errors(
         if step == 0.0 {
             continue;
         }
-        let forward = match (truth.interpolate(t[0], max_gap_ns), truth.interpolate(t[1], max_gap_ns)) {
-            (Some(a), Some(b)) => (a.rotation * Vector3::x() + b.rotation * Vector3::x())
-                .try_normalize(1e-9)
-                .map(|f| (b.translation.vector - a.translation.vector).dot(&f)),
-            _ => None,
-        };
-        match forward {
+        match forward_displacement(truth, t[0], t[1], max_gap_ns) {
             Some(along) => {
                 *error += scale * step - along;
                 *moved = true;

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Result, bail};
-use gprflow::eval::{Trajectory, WheelFit, WheelTrack, fit_wheel, wheel_period_errors};
+use gprflow::eval::{Stats, Trajectory, WheelFit, WheelTrack, fit_wheel, wheel_period_errors};
 use gprflow::record::Recording;
 use serde::Serialize;
 
@@ -84,8 +84,7 @@ pub fn calibrate_wheel(args: &CalibrateWheelArgs) -> Result<ExitCode> {
         combined,
         wheel_scale,
         period_ms: args.period_ms,
-        period_error_rms_m: (!errors.is_empty())
-            .then(|| (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt()),
+        period_error_rms_m: Stats::of(&errors).map(|s| s.rmse),
         periods: errors.len(),
     };
     let mut out = std::io::stdout().lock();
