@@ -29,12 +29,16 @@ use crate::values::{Values, VarId};
 use crate::{Error, Result};
 
 /// Which variables are solved for, and where each sits in the linear system.
+///
+/// Lookups are by variable id into a table that spans only the free ids (from the lowest to
+/// the highest), so a window of the newest states costs its own size, not the whole run's.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Ordering {
-    /// Per variable id: `(offset, dim)` when free, `None` when held fixed.
-    slots: Vec<Option<(usize, usize)>>,
-    /// Per variable id: its position in `free`.
-    position: Vec<Option<usize>>,
+    /// The lowest free id: `slots[k]` is variable `base + k`.
+    base: usize,
+    /// Per variable id from `base`: `(offset, dim, position in free)` when free, `None` when
+    /// held fixed.
+    slots: Vec<Option<(usize, usize, usize)>>,
     free: Vec<VarId>,
     dim: usize,
 }
@@ -50,38 +54,46 @@ impl Ordering {
     /// Only `free` variables are solved for (in the given order); the rest are constants.
     #[must_use]
     pub fn free(values: &Values, free: &[VarId]) -> Self {
-        let mut slots = vec![None; values.len()];
-        let mut position = vec![None; values.len()];
+        let known = || free.iter().filter(|id| id.0 < values.len()).map(|id| id.0);
+        let base = known().min().unwrap_or(0);
+        let end = known().max().map_or(base, |m| m + 1);
+        let mut slots = vec![None; end - base];
         let mut dim = 0;
         let mut kept = Vec::with_capacity(free.len());
         for id in free {
             if let Ok(v) = values.get(*id)
-                && slots[id.0].is_none()
+                && slots[id.0 - base].is_none()
             {
-                slots[id.0] = Some((dim, v.dim()));
-                position[id.0] = Some(kept.len());
+                slots[id.0 - base] = Some((dim, v.dim(), kept.len()));
                 dim += v.dim();
                 kept.push(*id);
             }
         }
         Self {
+            base,
             slots,
-            position,
             free: kept,
             dim,
         }
     }
 
+    fn entry(&self, id: VarId) -> Option<(usize, usize, usize)> {
+        id.0.checked_sub(self.base)
+            .and_then(|k| self.slots.get(k))
+            .copied()
+            .flatten()
+    }
+
     /// `(offset, dim)` of a free variable.
     #[must_use]
     pub fn slot(&self, id: VarId) -> Option<(usize, usize)> {
-        self.slots.get(id.0).copied().flatten()
+        self.entry(id).map(|(offset, dim, _)| (offset, dim))
     }
 
     /// Position of a free variable in [`Ordering::free_vars`].
     #[must_use]
     pub fn position(&self, id: VarId) -> Option<usize> {
-        self.position.get(id.0).copied().flatten()
+        self.entry(id).map(|(_, _, position)| position)
     }
 
     /// The free variables in system order.
