@@ -53,6 +53,10 @@ pub struct EstimateParams {
     /// (default 1: every update that brings a loop closure starts one). Closures in between
     /// are solved with the window, against the older states as they are.
     pub resolve_spacing_states: usize,
+    /// `fixed_lag` smoother: and at least this fraction of the states there were at the start
+    /// of the last re-solve (default 0: `resolve_spacing_states` alone), so that the
+    /// re-solves, each of the whole graph, cost a multiple of the last one in all.
+    pub resolve_spacing_growth: f64,
     /// `fixed_lag` smoother: the newest states each re-solve solves, the older ones held at
     /// their estimate (default 0: the whole graph). Bounds a re-solve's cost on long runs; the
     /// end-of-run solve is always of the whole graph.
@@ -135,6 +139,7 @@ impl Default for EstimateParams {
             marginalise: o.smoother.marginalise,
             resolve_iterations: o.smoother.full_solve.max_iterations,
             resolve_spacing_states: o.smoother.resolve_spacing_states,
+            resolve_spacing_growth: o.smoother.resolve_spacing_growth,
             resolve_window_states: o.smoother.resolve_window_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
@@ -172,6 +177,7 @@ impl EstimateParams {
                 background: self.background_solves,
                 marginalise: self.marginalise,
                 resolve_spacing_states: self.resolve_spacing_states,
+                resolve_spacing_growth: self.resolve_spacing_growth,
                 resolve_window_states: self.resolve_window_states,
                 full_solve: crate::batch::LmParams {
                     max_iterations: self.resolve_iterations,
@@ -213,6 +219,7 @@ impl EstimateParams {
         gprflow_params::at_least("lag_states", self.lag_states, 1)?;
         gprflow_params::at_least("resolve_iterations", self.resolve_iterations, 1)?;
         gprflow_params::at_least("resolve_spacing_states", self.resolve_spacing_states, 1)?;
+        gprflow_params::non_negative("resolve_spacing_growth", self.resolve_spacing_growth)?;
         let inc = &self.incremental;
         for (key, value) in [
             ("incremental.relinearize_rotation_rad", inc.relinearize_rotation_rad),

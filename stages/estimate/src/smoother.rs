@@ -88,6 +88,13 @@ pub struct SmootherParams {
     /// closure starts one at the next update). Closures that arrive in between are solved
     /// with the window against the states behind it, and the next re-solve takes them all.
     pub resolve_spacing_states: usize,
+    /// Whole-graph re-solves at least this fraction of the states there were at the start of
+    /// the last one apart (default 0: the spacing alone). A re-solve of the whole graph costs
+    /// more than its length, so at a fixed spacing the run's cost grows faster than the
+    /// square of its length; spaced in proportion to the graph, their total is a multiple of
+    /// the last one's cost (the spacing of a growing vector's reallocations). With
+    /// [`SmootherParams::resolve_window_states`] the re-solves in between solve the window.
+    pub resolve_spacing_growth: f64,
     /// States a re-solve solves, the newest ones (default 0: the whole graph). Older states
     /// are held at their estimate, as the window holds the states behind it, so a re-solve
     /// costs this many states however long the run. The end-of-run solve
@@ -110,6 +117,7 @@ impl Default for SmootherParams {
             newest_covariance: true,
             marginalise: false,
             resolve_spacing_states: 1,
+            resolve_spacing_growth: 0.0,
             resolve_window_states: 0,
         }
     }
@@ -178,6 +186,8 @@ pub struct FixedLagSmoother {
     held_instead: usize,
     /// States at the start of the last full re-solve.
     resolved_at: usize,
+    /// States at the start of the last re-solve of the whole graph.
+    whole_resolved_at: usize,
 }
 
 impl FixedLagSmoother {
@@ -199,6 +209,7 @@ impl FixedLagSmoother {
             priors: Vec::new(),
             held_instead: 0,
             resolved_at: 0,
+            whole_resolved_at: 0,
         }
     }
 
@@ -224,6 +235,28 @@ impl FixedLagSmoother {
     #[must_use]
     pub fn full_solve_running(&self) -> bool {
         self.running.is_some()
+    }
+
+    /// True when a re-solve now would be due to solve the whole graph: its spacing after
+    /// the last whole one has passed, grown with the graph.
+    fn whole_resolve_due(&self) -> bool {
+        // Truncation is intended: a fraction of a state count.
+        #[allow(
+            clippy::cast_possible_truncation,
+            clippy::cast_sign_loss,
+            clippy::cast_precision_loss
+        )]
+        let grown = (self.params.resolve_spacing_growth * self.whole_resolved_at as f64) as usize;
+        self.states.len() >= self.whole_resolved_at + self.params.resolve_spacing_states.max(grown)
+    }
+
+    /// True when a re-solve may start now.
+    fn resolve_due(&self) -> bool {
+        if self.params.resolve_window_states == 0 {
+            // Every re-solve is of the whole graph.
+            return self.whole_resolve_due();
+        }
+        self.states.len() >= self.resolved_at + self.params.resolve_spacing_states
     }
 
     fn window_start(&self) -> usize {
@@ -267,14 +300,16 @@ impl FixedLagSmoother {
         }
         let window = self.solve_window(graph, values)?;
         let mut started = false;
-        if self.full_solve_wanted
-            && self.running.is_none()
-            && self.states.len() >= self.resolved_at + self.params.resolve_spacing_states
-        {
+        if self.full_solve_wanted && self.running.is_none() && self.resolve_due() {
+            let whole = self.params.resolve_window_states == 0
+                || (self.params.resolve_spacing_growth > 0.0 && self.whole_resolve_due());
             self.full_solve_wanted = false;
             self.resolved_at = self.states.len();
+            if whole {
+                self.whole_resolved_at = self.states.len();
+            }
             started = true;
-            self.start_full_solve(graph, values);
+            self.start_full_solve(graph, values, whole);
         }
         let merged = match merged {
             Some(m) => Some(m),
@@ -419,9 +454,9 @@ impl FixedLagSmoother {
     /// [`SmootherParams::resolve_window_states`] the newest states, the variables of no state
     /// that their factors reach (map lines), and every factor on any of them (the older states
     /// those reach held at their estimate).
-    fn resolve_problem(&self, graph: &FactorGraph, values: &Values) -> (FactorGraph, Ordering) {
+    fn resolve_problem(&self, graph: &FactorGraph, values: &Values, whole: bool) -> (FactorGraph, Ordering) {
         let window = self.params.resolve_window_states;
-        if window == 0 || window >= self.states.len() {
+        if whole || window == 0 || window >= self.states.len() {
             return (graph.clone(), Ordering::all(values));
         }
         let mut free: Vec<VarId> = self.states[self.states.len() - window..]
@@ -449,8 +484,8 @@ impl FixedLagSmoother {
         (local, Ordering::free(values, &free))
     }
 
-    fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values) {
-        let (snapshot_graph, ordering) = self.resolve_problem(graph, values);
+    fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values, whole: bool) {
+        let (snapshot_graph, ordering) = self.resolve_problem(graph, values, whole);
         let mut snapshot_values = values.clone();
         let params = self.params.full_solve;
         let (tx, rx) = mpsc::sync_channel(1);
@@ -748,7 +783,7 @@ mod tests {
     /// from every state past the 12th to the state 10 before it (behind the 4-state window),
     /// did: the states whose update started a re-solve, the states each such update moved, and
     /// the values after the final solve.
-    fn closure_chain(spacing: usize, resolve_window: usize) -> (Vec<usize>, Vec<Vec<usize>>, Values) {
+    fn closure_chain(spacing: usize, resolve_window: usize, growth: f64) -> (Vec<usize>, Vec<Vec<usize>>, Values) {
         use crate::factors::{BetweenPose, PosePrior};
         use crate::lie::Pose3;
         let mut smoother = FixedLagSmoother::new(SmootherParams {
@@ -757,6 +792,7 @@ mod tests {
             background: false,
             resolve_spacing_states: spacing,
             resolve_window_states: resolve_window,
+            resolve_spacing_growth: growth,
             ..SmootherParams::default()
         });
         let (mut graph, mut values) = (FactorGraph::new(), Values::new());
@@ -797,8 +833,8 @@ mod tests {
 
     #[test]
     fn a_re_solve_window_holds_the_states_before_it_and_the_final_solve_is_the_same() {
-        let (started, moved, whole) = closure_chain(1, 0);
-        let (started_w, moved_w, windowed) = closure_chain(1, 10);
+        let (started, moved, whole) = closure_chain(1, 0, 0.0);
+        let (started_w, moved_w, windowed) = closure_chain(1, 10, 0.0);
         assert_eq!(started, started_w);
         for ((k, all), window) in started.iter().zip(&moved).zip(&moved_w) {
             // a re-solve of the whole graph moves states older than the newest 10; with the
@@ -824,13 +860,31 @@ mod tests {
 
     #[test]
     fn re_solves_are_spaced_and_the_closures_between_wait_for_the_next() {
-        let (every, _, at_one) = closure_chain(1, 0);
-        let (spaced, _, at_ten) = closure_chain(10, 0);
+        let (every, _, at_one) = closure_chain(1, 0, 0.0);
+        let (spaced, _, at_ten) = closure_chain(10, 0, 0.0);
         assert_eq!(every, (13..40).collect::<Vec<_>>());
         // The first closure re-solves at once, the next ones at least 10 states later.
         assert_eq!(spaced, vec![13, 23, 33]);
         // The final solve reaches the same optimum either way.
         assert_same_poses(&at_one, &at_ten);
+    }
+
+    #[test]
+    fn whole_graph_re_solves_are_spaced_in_proportion_to_the_graph() {
+        // The first closure (state 13, 14 states) re-solves at once; the next whole re-solves
+        // wait half the states there were at the last one: 7 (state 20), then 10 (state 30).
+        let (whole, _, at_one) = closure_chain(1, 0, 0.0);
+        let (grown, _, at_grown) = closure_chain(1, 0, 0.5);
+        assert_eq!(grown, vec![13, 20, 30]);
+        assert_same_poses(&at_one, &at_grown);
+        // With a re-solve window, the updates in between still re-solve, the window only.
+        let (hybrid, moved, at_hybrid) = closure_chain(1, 10, 0.5);
+        assert_eq!(hybrid, whole);
+        for (k, moved) in hybrid.iter().zip(&moved) {
+            let behind = moved.iter().any(|&i| i + 10 <= *k);
+            assert_eq!(behind, grown.contains(k), "state {k}: {moved:?}");
+        }
+        assert_same_poses(&at_one, &at_hybrid);
     }
 
     #[test]
