@@ -174,6 +174,11 @@ pub fn levenberg_marquardt_keep_hessian(
                         report.converged = true;
                         break 'outer;
                     }
+                    if report.iterations >= params.max_iterations {
+                        // A linearisation here would serve no step (the normal equations
+                        // handed back stay one accepted step behind, as documented).
+                        break 'outer;
+                    }
                     let t = Instant::now();
                     linearize_into(graph, factors, values, &st, &mut ne)?;
                     report.linearize_s += t.elapsed().as_secs_f64();

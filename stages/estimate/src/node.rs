@@ -53,10 +53,14 @@ pub struct EstimateParams {
     /// (default 1: every update that brings a loop closure starts one). Closures in between
     /// are solved with the window, against the older states as they are.
     pub resolve_spacing_states: usize,
-    /// `fixed_lag` smoother: and at least this fraction of the states there were at the start
-    /// of the last re-solve (default 0: `resolve_spacing_states` alone), so that the
-    /// re-solves, each of the whole graph, cost a multiple of the last one in all.
+    /// `fixed_lag` smoother: wide re-solves (of `resolve_wide_states`, by default the whole
+    /// graph) at least this fraction of the states there were at the start of the last one
+    /// apart (default 0: `resolve_spacing_states` alone), so that they cost a multiple of the
+    /// last one in all; with `resolve_window_states` the re-solves in between solve the window.
     pub resolve_spacing_growth: f64,
+    /// `fixed_lag` smoother: the newest states a wide re-solve solves (default 0: the whole
+    /// graph).
+    pub resolve_wide_states: usize,
     /// `fixed_lag` smoother: the newest states each re-solve solves, the older ones held at
     /// their estimate (default 0: the whole graph). Bounds a re-solve's cost on long runs; the
     /// end-of-run solve is always of the whole graph.
@@ -140,6 +144,7 @@ impl Default for EstimateParams {
             resolve_iterations: o.smoother.full_solve.max_iterations,
             resolve_spacing_states: o.smoother.resolve_spacing_states,
             resolve_spacing_growth: o.smoother.resolve_spacing_growth,
+            resolve_wide_states: o.smoother.resolve_wide_states,
             resolve_window_states: o.smoother.resolve_window_states,
             acc_noise_density: o.imu.acc_noise_density,
             gyro_noise_density: o.imu.gyro_noise_density,
@@ -178,6 +183,7 @@ impl EstimateParams {
                 marginalise: self.marginalise,
                 resolve_spacing_states: self.resolve_spacing_states,
                 resolve_spacing_growth: self.resolve_spacing_growth,
+                resolve_wide_states: self.resolve_wide_states,
                 resolve_window_states: self.resolve_window_states,
                 full_solve: crate::batch::LmParams {
                     max_iterations: self.resolve_iterations,
@@ -668,6 +674,17 @@ impl Stage for EstimateStage {
                 solves,
                 solve_s,
                 "estimate: whole-graph factorisations for the registration gate"
+            );
+        }
+        if let Some(t) = self.est.solve_times() {
+            tracing::info!(
+                window_solves = t.window.0,
+                window_s = t.window.1,
+                narrow_resolves = t.narrow.0,
+                narrow_s = t.narrow.1,
+                wide_resolves = t.wide.0,
+                wide_s = t.wide.1,
+                "estimate: time in the smoother"
             );
         }
         if self.est.late_updates() > 0 {

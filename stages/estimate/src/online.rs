@@ -351,6 +351,12 @@ impl OnlineEstimator {
         self.gate_solves
     }
 
+    /// Where the fixed-lag smoother's time went so far (`None` for the incremental one).
+    #[must_use]
+    pub fn solve_times(&self) -> Option<crate::smoother::SolveTimes> {
+        self.smoother.solve_times()
+    }
+
     /// Number of states.
     #[must_use]
     pub fn state_count(&self) -> usize {

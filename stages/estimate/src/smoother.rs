@@ -88,13 +88,20 @@ pub struct SmootherParams {
     /// closure starts one at the next update). Closures that arrive in between are solved
     /// with the window against the states behind it, and the next re-solve takes them all.
     pub resolve_spacing_states: usize,
-    /// Whole-graph re-solves at least this fraction of the states there were at the start of
-    /// the last one apart (default 0: the spacing alone). A re-solve of the whole graph costs
-    /// more than its length, so at a fixed spacing the run's cost grows faster than the
-    /// square of its length; spaced in proportion to the graph, their total is a multiple of
-    /// the last one's cost (the spacing of a growing vector's reallocations). With
+    /// Wide re-solves (of [`SmootherParams::resolve_wide_states`], by default the whole
+    /// graph) at least this fraction of the states there were at the start of the last one
+    /// apart (default 0: the spacing alone). A re-solve of the whole graph costs more than its
+    /// length, so at a fixed spacing the run's cost grows faster than the square of its
+    /// length; spaced in proportion to the graph, their total is a multiple of the last one's
+    /// cost (the spacing of a growing vector's reallocations). With
     /// [`SmootherParams::resolve_window_states`] the re-solves in between solve the window.
     pub resolve_spacing_growth: f64,
+    /// States a wide re-solve solves, the newest ones (default 0: the whole graph); more than
+    /// [`SmootherParams::resolve_window_states`]. On a graph that revisits the same ground lap
+    /// after lap the whole graph's factorisation grows faster than its length (13 s at 37,000
+    /// states of a 62-minute run), so without this bound the wide re-solves still dominate an
+    /// hour's run.
+    pub resolve_wide_states: usize,
     /// States a re-solve solves, the newest ones (default 0: the whole graph). Older states
     /// are held at their estimate, as the window holds the states behind it, so a re-solve
     /// costs this many states however long the run. The end-of-run solve
@@ -118,6 +125,7 @@ impl Default for SmootherParams {
             marginalise: false,
             resolve_spacing_states: 1,
             resolve_spacing_growth: 0.0,
+            resolve_wide_states: 0,
             resolve_window_states: 0,
         }
     }
@@ -132,6 +140,18 @@ pub struct FullSolveReport {
     pub lm: LmReport,
     /// From snapshot to merge, seconds (includes waiting for the next update).
     pub latency_s: f64,
+}
+
+/// Where a fixed-lag smoother's time went: per kind of solve, how many and their wall time,
+/// seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SolveTimes {
+    /// The window's solves, one per update.
+    pub window: (u64, f64),
+    /// Re-solves of [`SmootherParams::resolve_window_states`].
+    pub narrow: (u64, f64),
+    /// Wide re-solves (of [`SmootherParams::resolve_wide_states`], or the whole graph).
+    pub wide: (u64, f64),
 }
 
 /// What one update did.
@@ -153,6 +173,7 @@ struct Running {
     states: usize,
     vars: usize,
     newest_pose: Option<VarId>,
+    wide: bool,
 }
 
 impl std::fmt::Debug for Running {
@@ -186,8 +207,9 @@ pub struct FixedLagSmoother {
     held_instead: usize,
     /// States at the start of the last full re-solve.
     resolved_at: usize,
-    /// States at the start of the last re-solve of the whole graph.
-    whole_resolved_at: usize,
+    /// States at the start of the last wide re-solve.
+    wide_resolved_at: usize,
+    times: SolveTimes,
 }
 
 impl FixedLagSmoother {
@@ -209,7 +231,8 @@ impl FixedLagSmoother {
             priors: Vec::new(),
             held_instead: 0,
             resolved_at: 0,
-            whole_resolved_at: 0,
+            wide_resolved_at: 0,
+            times: SolveTimes::default(),
         }
     }
 
@@ -231,30 +254,36 @@ impl FixedLagSmoother {
         self.newest_cov.as_ref()
     }
 
+    /// Where the time went so far.
+    #[must_use]
+    pub fn solve_times(&self) -> SolveTimes {
+        self.times
+    }
+
     /// True while a full re-solve runs in the background.
     #[must_use]
     pub fn full_solve_running(&self) -> bool {
         self.running.is_some()
     }
 
-    /// True when a re-solve now would be due to solve the whole graph: its spacing after
-    /// the last whole one has passed, grown with the graph.
-    fn whole_resolve_due(&self) -> bool {
+    /// True when a re-solve now would be a wide one: its spacing after the last wide one has
+    /// passed, grown with the graph.
+    fn wide_resolve_due(&self) -> bool {
         // Truncation is intended: a fraction of a state count.
         #[allow(
             clippy::cast_possible_truncation,
             clippy::cast_sign_loss,
             clippy::cast_precision_loss
         )]
-        let grown = (self.params.resolve_spacing_growth * self.whole_resolved_at as f64) as usize;
-        self.states.len() >= self.whole_resolved_at + self.params.resolve_spacing_states.max(grown)
+        let grown = (self.params.resolve_spacing_growth * self.wide_resolved_at as f64) as usize;
+        self.states.len() >= self.wide_resolved_at + self.params.resolve_spacing_states.max(grown)
     }
 
     /// True when a re-solve may start now.
     fn resolve_due(&self) -> bool {
         if self.params.resolve_window_states == 0 {
-            // Every re-solve is of the whole graph.
-            return self.whole_resolve_due();
+            // Every re-solve is a wide one.
+            return self.wide_resolve_due();
         }
         self.states.len() >= self.resolved_at + self.params.resolve_spacing_states
     }
@@ -298,18 +327,24 @@ impl FixedLagSmoother {
         if self.params.marginalise {
             self.marginalise_old(graph, values)?;
         }
+        let t = Instant::now();
         let window = self.solve_window(graph, values)?;
+        self.times.window.0 += 1;
+        self.times.window.1 += t.elapsed().as_secs_f64();
         let mut started = false;
         if self.full_solve_wanted && self.running.is_none() && self.resolve_due() {
-            let whole = self.params.resolve_window_states == 0
-                || (self.params.resolve_spacing_growth > 0.0 && self.whole_resolve_due());
+            let wide = self.params.resolve_window_states == 0
+                || (self.params.resolve_spacing_growth > 0.0 && self.wide_resolve_due());
             self.full_solve_wanted = false;
             self.resolved_at = self.states.len();
-            if whole {
-                self.whole_resolved_at = self.states.len();
-            }
+            let window = if wide {
+                self.wide_resolved_at = self.states.len();
+                self.params.resolve_wide_states
+            } else {
+                self.params.resolve_window_states
+            };
             started = true;
-            self.start_full_solve(graph, values, whole);
+            self.start_full_solve(graph, values, window, wide);
         }
         let merged = match merged {
             Some(m) => Some(m),
@@ -450,13 +485,12 @@ impl FixedLagSmoother {
         Ok(report)
     }
 
-    /// The graph a re-solve solves and its free variables: the whole graph, or with
-    /// [`SmootherParams::resolve_window_states`] the newest states, the variables of no state
+    /// The graph a re-solve solves and its free variables: the whole graph (`window` 0), or the
+    /// newest `window` states, the variables of no state
     /// that their factors reach (map lines), and every factor on any of them (the older states
     /// those reach held at their estimate).
-    fn resolve_problem(&self, graph: &FactorGraph, values: &Values, whole: bool) -> (FactorGraph, Ordering) {
-        let window = self.params.resolve_window_states;
-        if whole || window == 0 || window >= self.states.len() {
+    fn resolve_problem(&self, graph: &FactorGraph, values: &Values, window: usize) -> (FactorGraph, Ordering) {
+        if window == 0 || window >= self.states.len() {
             return (graph.clone(), Ordering::all(values));
         }
         let mut free: Vec<VarId> = self.states[self.states.len() - window..]
@@ -484,8 +518,8 @@ impl FixedLagSmoother {
         (local, Ordering::free(values, &free))
     }
 
-    fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values, whole: bool) {
-        let (snapshot_graph, ordering) = self.resolve_problem(graph, values, whole);
+    fn start_full_solve(&mut self, graph: &FactorGraph, values: &Values, window: usize, wide: bool) {
+        let (snapshot_graph, ordering) = self.resolve_problem(graph, values, window);
         let mut snapshot_values = values.clone();
         let params = self.params.full_solve;
         let (tx, rx) = mpsc::sync_channel(1);
@@ -508,6 +542,7 @@ impl FixedLagSmoother {
             states: self.states.len(),
             vars: values.len(),
             newest_pose: self.states.last().and_then(|s| s.first()).copied(),
+            wide,
         });
         if self.params.background {
             let spawned = std::thread::Builder::new()
@@ -542,6 +577,13 @@ impl FixedLagSmoother {
             return Ok(None);
         };
         let (solved, lm) = got??;
+        let kind = if run.wide {
+            &mut self.times.wide
+        } else {
+            &mut self.times.narrow
+        };
+        kind.0 += 1;
+        kind.1 += lm.seconds;
         // Rigid correction of the snapshot's newest pose, applied to the states added since.
         let correction = match run.newest_pose {
             Some(id) => match (values.get(id)?, solved.get(id)?) {
@@ -595,6 +637,8 @@ impl FixedLagSmoother {
 }
 
 /// The smoother [`SmootherParams::method`] picks, behind one interface.
+// One per estimator: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Smoother {
     /// The whole graph, partial re-elimination.
@@ -650,6 +694,15 @@ impl Smoother {
         match self {
             Self::Incremental(s) => s.refresh(values),
             Self::FixedLag(_) => Ok(()),
+        }
+    }
+
+    /// Where the fixed-lag smoother's time went (`None` for the incremental one).
+    #[must_use]
+    pub fn solve_times(&self) -> Option<SolveTimes> {
+        match self {
+            Self::Incremental(_) => None,
+            Self::FixedLag(s) => Some(s.solve_times()),
         }
     }
 
@@ -783,7 +836,12 @@ mod tests {
     /// from every state past the 12th to the state 10 before it (behind the 4-state window),
     /// did: the states whose update started a re-solve, the states each such update moved, and
     /// the values after the final solve.
-    fn closure_chain(spacing: usize, resolve_window: usize, growth: f64) -> (Vec<usize>, Vec<Vec<usize>>, Values) {
+    fn closure_chain(
+        spacing: usize,
+        resolve_window: usize,
+        growth: f64,
+        wide: usize,
+    ) -> (Vec<usize>, Vec<Vec<usize>>, Values) {
         use crate::factors::{BetweenPose, PosePrior};
         use crate::lie::Pose3;
         let mut smoother = FixedLagSmoother::new(SmootherParams {
@@ -793,6 +851,7 @@ mod tests {
             resolve_spacing_states: spacing,
             resolve_window_states: resolve_window,
             resolve_spacing_growth: growth,
+            resolve_wide_states: wide,
             ..SmootherParams::default()
         });
         let (mut graph, mut values) = (FactorGraph::new(), Values::new());
@@ -833,8 +892,8 @@ mod tests {
 
     #[test]
     fn a_re_solve_window_holds_the_states_before_it_and_the_final_solve_is_the_same() {
-        let (started, moved, whole) = closure_chain(1, 0, 0.0);
-        let (started_w, moved_w, windowed) = closure_chain(1, 10, 0.0);
+        let (started, moved, whole) = closure_chain(1, 0, 0.0, 0);
+        let (started_w, moved_w, windowed) = closure_chain(1, 10, 0.0, 0);
         assert_eq!(started, started_w);
         for ((k, all), window) in started.iter().zip(&moved).zip(&moved_w) {
             // a re-solve of the whole graph moves states older than the newest 10; with the
@@ -860,8 +919,8 @@ mod tests {
 
     #[test]
     fn re_solves_are_spaced_and_the_closures_between_wait_for_the_next() {
-        let (every, _, at_one) = closure_chain(1, 0, 0.0);
-        let (spaced, _, at_ten) = closure_chain(10, 0, 0.0);
+        let (every, _, at_one) = closure_chain(1, 0, 0.0, 0);
+        let (spaced, _, at_ten) = closure_chain(10, 0, 0.0, 0);
         assert_eq!(every, (13..40).collect::<Vec<_>>());
         // The first closure re-solves at once, the next ones at least 10 states later.
         assert_eq!(spaced, vec![13, 23, 33]);
@@ -873,18 +932,28 @@ mod tests {
     fn whole_graph_re_solves_are_spaced_in_proportion_to_the_graph() {
         // The first closure (state 13, 14 states) re-solves at once; the next whole re-solves
         // wait half the states there were at the last one: 7 (state 20), then 10 (state 30).
-        let (whole, _, at_one) = closure_chain(1, 0, 0.0);
-        let (grown, _, at_grown) = closure_chain(1, 0, 0.5);
+        let (whole, _, at_one) = closure_chain(1, 0, 0.0, 0);
+        let (grown, _, at_grown) = closure_chain(1, 0, 0.5, 0);
         assert_eq!(grown, vec![13, 20, 30]);
         assert_same_poses(&at_one, &at_grown);
         // With a re-solve window, the updates in between still re-solve, the window only.
-        let (hybrid, moved, at_hybrid) = closure_chain(1, 10, 0.5);
+        let (hybrid, moved, at_hybrid) = closure_chain(1, 10, 0.5, 0);
         assert_eq!(hybrid, whole);
         for (k, moved) in hybrid.iter().zip(&moved) {
             let behind = moved.iter().any(|&i| i + 10 <= *k);
             assert_eq!(behind, grown.contains(k), "state {k}: {moved:?}");
         }
         assert_same_poses(&at_one, &at_hybrid);
+        // Wide re-solves of the newest 15 states: the older ones stay where they were.
+        let (bounded, moved, at_bounded) = closure_chain(1, 5, 0.5, 15);
+        assert_eq!(bounded, whole);
+        for (k, moved) in bounded.iter().zip(&moved) {
+            // (state 13's wide re-solve, of 14 states, is of the whole graph)
+            let reach = if grown.contains(k) { 15.min(k + 1) } else { 5 };
+            assert!(moved.iter().all(|&i| i + reach > *k), "state {k}: {moved:?}");
+            assert!(moved.iter().any(|&i| i + reach == *k + 1), "state {k}: {moved:?}");
+        }
+        assert_same_poses(&at_one, &at_bounded);
     }
 
     #[test]
