@@ -680,6 +680,8 @@ impl Stage for EstimateStage {
             tracing::info!(
                 window_solves = t.window.0,
                 window_s = t.window.1,
+                window_iterations = t.window_iterations.0,
+                window_linear_solves = t.window_iterations.1,
                 narrow_resolves = t.narrow.0,
                 narrow_s = t.narrow.1,
                 wide_resolves = t.wide.0,

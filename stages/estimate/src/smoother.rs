@@ -148,6 +148,8 @@ pub struct FullSolveReport {
 pub struct SolveTimes {
     /// The window's solves, one per update.
     pub window: (u64, f64),
+    /// Their accepted iterations and linear solves.
+    pub window_iterations: (u64, u64),
     /// Re-solves of [`SmootherParams::resolve_window_states`].
     pub narrow: (u64, f64),
     /// Wide re-solves (of [`SmootherParams::resolve_wide_states`], or the whole graph).
@@ -331,6 +333,8 @@ impl FixedLagSmoother {
         let window = self.solve_window(graph, values)?;
         self.times.window.0 += 1;
         self.times.window.1 += t.elapsed().as_secs_f64();
+        self.times.window_iterations.0 += window.iterations as u64;
+        self.times.window_iterations.1 += window.linear_solves as u64;
         let mut started = false;
         if self.full_solve_wanted && self.running.is_none() && self.resolve_due() {
             let wide = self.params.resolve_window_states == 0
