@@ -80,9 +80,19 @@ pub fn levenberg_marquardt(
     levenberg_marquardt_keep_hessian(graph, factors, values, ordering, params, structure).map(|(r, _)| r)
 }
 
+/// What [`levenberg_marquardt_keep_hessian`] hands back beside its report.
+#[derive(Debug)]
+pub struct KeptHessian {
+    /// The last normal equations it built.
+    pub equations: NormalEquations,
+    /// The factorisation of their `H + lambda I` and its `lambda`, when the last one made was
+    /// of them (not when the iterations ended on a relinearisation or a failed factorisation).
+    pub factorization: Option<(Factorization, f64)>,
+}
+
 /// [`levenberg_marquardt`], also handing back the last normal equations it built (at the last
 /// linearisation point: the solution, or the point one accepted step before it), for a
-/// covariance without another linearisation.
+/// covariance without another linearisation, and their factorisation when it has one.
 ///
 /// # Errors
 /// As [`levenberg_marquardt`].
@@ -93,7 +103,7 @@ pub fn levenberg_marquardt_keep_hessian(
     ordering: &Ordering,
     params: &LmParams,
     structure: &mut Option<HessianStructure>,
-) -> Result<(LmReport, NormalEquations)> {
+) -> Result<(LmReport, KeptHessian)> {
     let start = Instant::now();
     faer::set_global_parallelism(faer::Par::Seq);
     let st = match structure.take() {
@@ -123,9 +133,17 @@ pub fn levenberg_marquardt_keep_hessian(
     if ordering.dim() == 0 {
         report.converged = true;
         *structure = Some(st);
-        return Ok((report, ne));
+        return Ok((
+            report,
+            KeptHessian {
+                equations: ne,
+                factorization: None,
+            },
+        ));
     }
     report.linearize_s = first_linearize_s;
+    // The lambda of the factorisation held, while it is of `ne`.
+    let mut factored_lambda: Option<f64> = None;
     'outer: while report.iterations < params.max_iterations {
         loop {
             report.linear_solves += 1;
@@ -135,6 +153,7 @@ pub fn levenberg_marquardt_keep_hessian(
                 Some(f) => f.refactor(&st, &ne.hessian, lambda).map(|()| &*f),
                 None => Factorization::new(&st, &ne.hessian, lambda).map(|f| &*factorization.insert(f)),
             };
+            factored_lambda = factored.is_ok().then_some(lambda);
             let step = match factored {
                 Ok(f) => {
                     let mut dx = ne.gradient.as_slice().to_vec();
@@ -180,6 +199,7 @@ pub fn levenberg_marquardt_keep_hessian(
                         break 'outer;
                     }
                     let t = Instant::now();
+                    factored_lambda = None;
                     linearize_into(graph, factors, values, &st, &mut ne)?;
                     report.linearize_s += t.elapsed().as_secs_f64();
                     break;
@@ -195,7 +215,14 @@ pub fn levenberg_marquardt_keep_hessian(
     }
     report.seconds = start.elapsed().as_secs_f64();
     *structure = Some(st);
-    Ok((report, ne))
+    let factorization = factorization.zip(factored_lambda);
+    Ok((
+        report,
+        KeptHessian {
+            equations: ne,
+            factorization,
+        },
+    ))
 }
 
 #[cfg(test)]

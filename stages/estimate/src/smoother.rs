@@ -39,7 +39,7 @@ use crate::batch::{LmParams, LmReport, levenberg_marquardt, levenberg_marquardt_
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
 use crate::incremental::{IncrementalParams, IncrementalReport, IncrementalSmoother};
-use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
+use crate::linear::{FREE_DIRECTION_DAMPING, Factorization, HessianStructure, Ordering, marginal_covariance};
 use crate::marginal::{MarginalPrior, marginalise, normal_equations};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
@@ -463,7 +463,7 @@ impl FixedLagSmoother {
             max_iterations: self.params.iterations_per_update,
             ..LmParams::default()
         };
-        let (report, ne) = if self.priors.is_empty() {
+        let (report, kept) = if self.priors.is_empty() {
             levenberg_marquardt_keep_hessian(graph, &factors, values, &ordering, &lm, &mut self.structure)?
         } else {
             // The window's factors and the priors, as one small graph (shared factors).
@@ -479,12 +479,20 @@ impl FixedLagSmoother {
         };
         self.newest_cov = None;
         // From the solver's last linearisation (at most one accepted step from the solution),
-        // weakly damped where a direction is free (a line seen from one side only).
+        // weakly damped where a direction is free (a line seen from one side only): the
+        // solver's own factorisation of it when its damping is no more than that.
         if self.params.newest_covariance
             && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
-            && let Ok(f) = Factorization::for_covariance(st, &ne.hessian)
         {
-            self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
+            let ne = &kept.equations;
+            let weak = FREE_DIRECTION_DAMPING * st.max_diagonal(&ne.hessian);
+            let factored = match kept.factorization {
+                Some((f, lambda)) if lambda <= weak => Ok(f),
+                _ => Factorization::for_covariance(st, &ne.hessian),
+            };
+            if let Ok(f) = factored {
+                self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
+            }
         }
         Ok(report)
     }
