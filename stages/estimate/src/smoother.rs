@@ -21,11 +21,17 @@
 //!   merges it: every variable of the snapshot takes the full solution and the states added
 //!   since are moved by the rigid correction of the snapshot's newest pose. A loop closure that
 //!   arrives while a solve runs is picked up by the next solve.
+//! - **Bounded re-solves**: with [`SmootherParams::resolve_window_states`] a re-solve solves
+//!   only the newest states and holds the older ones, as the window does; with
+//!   [`SmootherParams::resolve_spacing_growth`] a wide one (the whole graph, or
+//!   [`SmootherParams::resolve_wide_states`]) comes only once the graph has grown by that
+//!   fraction since the last, so the wide ones cost a multiple of the last one in all.
 //!
-//! Its limits, which the incremental smoother does not have: the full re-solves cost the
-//! whole graph each (0.1-0.4 s at N = 2000), so fed faster than they finish (a recording
+//! Its limits, which the incremental smoother does not have: a re-solve of the whole graph
+//! costs the whole graph (0.1-0.4 s at N = 2000), so fed faster than they finish (a recording
 //! replayed as fast as it goes) the estimate falls behind the optimum; in line
-//! (`background: false`) the run's cost grows with the square of its length; and unless
+//! (`background: false`) and unbounded, the run's cost grows with the square of its length;
+//! bounded, the states behind a re-solve's window are held as they were; and unless
 //! marginalising, states leaving the window are conditioned on, so the window's covariance is
 //! the covariance given the older states, smaller than the true marginal.
 
