@@ -660,6 +660,23 @@ impl Factorization {
         })
     }
 
+    /// [`Factorization::for_covariance`], but taking `held`, a factorisation of `H + lambda I`
+    /// already made (with its `lambda`), when its damping is no more than the free-direction
+    /// damping.
+    ///
+    /// # Errors
+    /// As [`Factorization::for_covariance`].
+    pub fn for_covariance_reusing(
+        structure: &HessianStructure,
+        hessian: &[f64],
+        held: Option<(Self, f64)>,
+    ) -> Result<Self> {
+        match held {
+            Some((f, lambda)) if lambda <= FREE_DIRECTION_DAMPING * structure.max_diagonal(hessian) => Ok(f),
+            _ => Self::for_covariance(structure, hessian),
+        }
+    }
+
     /// Factorises `H + lambda I` again, reusing the buffers when `structure` is the one this
     /// factorisation was made with.
     ///

@@ -45,7 +45,7 @@ use crate::batch::{LmParams, LmReport, levenberg_marquardt, levenberg_marquardt_
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
 use crate::incremental::{IncrementalParams, IncrementalReport, IncrementalSmoother};
-use crate::linear::{FREE_DIRECTION_DAMPING, Factorization, HessianStructure, Ordering, marginal_covariance};
+use crate::linear::{Factorization, HessianStructure, Ordering, marginal_covariance};
 use crate::marginal::{MarginalPrior, marginalise, normal_equations};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
@@ -489,16 +489,9 @@ impl FixedLagSmoother {
         // solver's own factorisation of it when its damping is no more than that.
         if self.params.newest_covariance
             && let (Some(st), Some(newest)) = (&self.structure, self.states.last().and_then(|s| s.first()))
+            && let Ok(f) = Factorization::for_covariance_reusing(st, &kept.equations.hessian, kept.factorization)
         {
-            let ne = &kept.equations;
-            let weak = FREE_DIRECTION_DAMPING * st.max_diagonal(&ne.hessian);
-            let factored = match kept.factorization {
-                Some((f, lambda)) if lambda <= weak => Ok(f),
-                _ => Factorization::for_covariance(st, &ne.hessian),
-            };
-            if let Ok(f) = factored {
-                self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
-            }
+            self.newest_cov = Some(marginal_covariance(&f, st.ordering(), *newest)?);
         }
         Ok(report)
     }
