@@ -287,13 +287,14 @@ impl FixedLagSmoother {
         self.states.len() >= self.wide_resolved_at + self.params.resolve_spacing_states.max(grown)
     }
 
-    /// True when a re-solve may start now.
-    fn resolve_due(&self) -> bool {
+    /// Whether a re-solve may start now, and if so whether it is a wide one.
+    fn resolve_due(&self) -> Option<bool> {
         if self.params.resolve_window_states == 0 {
             // Every re-solve is a wide one.
-            return self.wide_resolve_due();
+            return self.wide_resolve_due().then_some(true);
         }
-        self.states.len() >= self.resolved_at + self.params.resolve_spacing_states
+        (self.states.len() >= self.resolved_at + self.params.resolve_spacing_states)
+            .then(|| self.params.resolve_spacing_growth > 0.0 && self.wide_resolve_due())
     }
 
     fn window_start(&self) -> usize {
@@ -342,9 +343,10 @@ impl FixedLagSmoother {
         self.times.window_iterations.0 += window.iterations as u64;
         self.times.window_iterations.1 += window.linear_solves as u64;
         let mut started = false;
-        if self.full_solve_wanted && self.running.is_none() && self.resolve_due() {
-            let wide = self.params.resolve_window_states == 0
-                || (self.params.resolve_spacing_growth > 0.0 && self.wide_resolve_due());
+        if self.full_solve_wanted
+            && self.running.is_none()
+            && let Some(wide) = self.resolve_due()
+        {
             self.full_solve_wanted = false;
             self.resolved_at = self.states.len();
             let window = if wide {
