@@ -102,8 +102,9 @@ enum Command {
         /// With --host: seconds to wait for the other hosts to come up.
         #[arg(long, default_value_t = 120.0)]
         remote_timeout_s: f64,
-        /// Frames each topic buffers per subscriber.
-        #[arg(long, default_value_t = 16)]
+        /// Frames each topic buffers per subscriber (how far a busy stage may fall behind
+        /// before it holds up the stages upstream).
+        #[arg(long, default_value_t = gprflow::bus::DEFAULT_BUFFER)]
         buffer: usize,
         /// Check the graph and print the plan without starting anything.
         #[arg(long)]

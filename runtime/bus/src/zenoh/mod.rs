@@ -46,6 +46,11 @@ const HEARTBEAT: Duration = Duration::from_millis(100);
 /// Resend what is unacknowledged when nothing advanced for this long.
 const RESEND_AFTER: Duration = Duration::from_millis(300);
 const POLL: Duration = Duration::from_millis(20);
+/// Frames of a lossless topic a publisher sends ahead of the remote consumer at most, however
+/// deep the topic's buffer: with more in flight, a link that stalls fills zenoh's transmission
+/// queue, and zenoh then closes the session itself before the link timeout can report what
+/// was not delivered.
+const MAX_IN_FLIGHT: usize = 16;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)

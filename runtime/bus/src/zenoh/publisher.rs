@@ -136,7 +136,7 @@ impl ZenohPublisher {
         Ok(Self {
             shared,
             latest_only: topic.latest_only,
-            capacity: topic.buffer.max(1) as u64,
+            capacity: topic.buffer.clamp(1, super::MAX_IN_FLIGHT) as u64,
             link_timeout: t.link_timeout,
             stop: t.stop.clone(),
             _acks: acks,

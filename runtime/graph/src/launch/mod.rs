@@ -78,7 +78,7 @@ impl LaunchOptions {
             exe,
             record: None,
             host: None,
-            buffer: 16,
+            buffer: gprflow_bus::DEFAULT_BUFFER,
             handshake_timeout: Duration::from_secs(30),
             remote_timeout: Duration::from_secs(120),
             stop_grace: Duration::from_secs(5),
