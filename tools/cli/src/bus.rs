@@ -227,7 +227,7 @@ pub fn replay(args: &ReplayArgs) -> Result<ExitCode> {
             msg_type: msg_type.clone(),
             subscribers: readers,
             required_subscribers: readers,
-            buffer: bus_topic.map_or(16, |d| d.buffer),
+            buffer: bus_topic.map_or(gprflow::bus::DEFAULT_BUFFER, |d| d.buffer),
             latest_only: bus_topic.is_some_and(|d| d.latest_only),
         });
     }
@@ -320,6 +320,9 @@ struct Tap {
     written: u64,
     /// Connected to the topic's publisher.
     connected: bool,
+    /// Its publisher went away without an end of stream reaching this tap (it had sent it
+    /// before the tap connected).
+    gone: bool,
 }
 
 /// How often the bus is looked at for new topics.
@@ -358,7 +361,8 @@ pub fn record(args: &RecordArgs) -> Result<ExitCode> {
         if duration.is_some_and(|d| started.elapsed() >= d) {
             break;
         }
-        if looked.is_none_or(|t| t.elapsed() >= LOOK_EVERY) {
+        let look = looked.is_none_or(|t| t.elapsed() >= LOOK_EVERY);
+        if look {
             looked = Some(Instant::now());
             for topic in transport.topics()? {
                 if !args.topics.iter().any(|g| glob_matches(g, &topic.name))
@@ -382,12 +386,14 @@ pub fn record(args: &RecordArgs) -> Result<ExitCode> {
                     msg_type,
                     written: 0,
                     connected: false,
+                    gone: false,
                 });
             }
-            // connect to publishers that came since
-            for tap in taps.iter_mut().filter(|t| !t.connected) {
-                tap.connected = tap.inbox.observe()?;
-            }
+        }
+        // connect to publishers that came since, at every turn: a replay may send its whole
+        // topic within milliseconds of starting
+        for tap in taps.iter_mut().filter(|t| !t.connected) {
+            tap.connected = tap.inbox.observe()?;
         }
         let mut got = false;
         for tap in &mut taps {
@@ -404,12 +410,26 @@ pub fn record(args: &RecordArgs) -> Result<ExitCode> {
                         got = true;
                     }
                     Some(Delivery::Watermark(_)) => got = true,
-                    Some(Delivery::EndOfStream) | None => break,
+                    Some(Delivery::EndOfStream) => break,
+                    None => {
+                        // drained, and the publisher gone (looked at now and then): its end
+                        // of stream went before this tap connected
+                        if look && tap.connected && !tap.gone && !tap.inbox.observe()? {
+                            tap.gone = true;
+                            eprintln!(
+                                "gprflow: `{}` ended before its end of stream reached the recorder",
+                                tap.name
+                            );
+                        }
+                        break;
+                    }
                 }
             }
         }
         let recording = taps.iter().any(|t| t.channel.is_some());
-        if recording && taps.iter().all(|t| t.inbox.ended()) {
+        // (not on a turn that brought data: a publisher may send its last frames and go
+        // between a tap's drain and the look at its publisher)
+        if recording && !got && taps.iter().all(|t| t.inbox.ended() || t.gone) {
             break;
         }
         if !recording && started.elapsed() > wait {
