@@ -414,7 +414,7 @@ pub fn record(args: &RecordArgs) -> Result<ExitCode> {
                     None => {
                         // drained, and the publisher gone (looked at now and then): its end
                         // of stream went before this tap connected
-                        if look && tap.connected && !tap.gone && !tap.inbox.observe()? {
+                        if look && tap.connected && !tap.gone && !tap.inbox.ended() && !tap.inbox.observe()? {
                             tap.gone = true;
                             eprintln!(
                                 "gprflow: `{}` ended before its end of stream reached the recorder",
