@@ -3,7 +3,7 @@
 # second, the resident set and open file descriptors of each of its processes are sampled;
 # after each, the shared-memory entries (/dev/shm, /tmp/iceoryx2) and run folders (/tmp/gprflow-*) are
 # counted. It fails when a run fails, when two runs disagree on any message count (a message
-# lost), when anything is left behind after a run, or when a process's peak RSS grows from
+# lost; but for what a feedback input read, which ends with the consumer), when anything is left behind after a run, or when a process's peak RSS grows from
 # the first run to the last or its open files from the first half of the runs to the second.
 #
 # usage: tools/bench/soak.sh [MINUTES (30)] [GRAPH (localize)] [RECORDING (the graph's own)]
@@ -32,6 +32,9 @@ children() { awk -v p="$1" '$4 == p { print $1 }' /proc/[0-9]*/stat 2> /dev/null
 count_runs() { find /tmp -maxdepth 1 -name 'gprflow-*' 2> /dev/null | wc -l || true; }
 shm0=$(count_shm)
 runs0=$(count_runs)
+# the plan says which inputs are feedback (an estimate read back upstream): the consumer ends
+# with its primary inputs, before the producer, so how many it read is a matter of timing
+"$GPRFLOW" launch "graphs/$graph.yaml" "${sets[@]}" --dry-run > "$out/plan.json"
 printf 'run\tnode\tt_s\trss_kib\tfds\n' > "$out/samples.tsv"
 : > "$out/leftovers.tsv"
 end=$(python3 -c "import time; print(time.time() + 60 * float('$minutes'))")
@@ -71,8 +74,11 @@ import csv, json, sys
 out, runs = sys.argv[1], int(sys.argv[2])
 problems = []
 reports = [json.load(open(f"{out}/run-{i}.json")) for i in range(1, runs + 1)]
+feedback = {(p["node"], i["topic"]) for p in json.load(open(f"{out}/plan.json"))
+            for i in p["inputs"] if i["feedback_delay_ns"] is not None}
 def counts(r):
-    return {n["node"]: (n["report"]["received"], n["report"]["sent"]) for n in r["nodes"] if n["report"]}
+    return {n["node"]: ([c for c in n["report"]["received"] if (n["node"], c[0]) not in feedback],
+                        n["report"]["sent"]) for n in r["nodes"] if n["report"]}
 first = counts(reports[0])
 for i, r in enumerate(reports, 1):
     if not r["succeeded"]:
