@@ -3,8 +3,9 @@
 # second, the resident set and open file descriptors of each of its processes are sampled;
 # after each, the shared-memory entries (/dev/shm, /tmp/iceoryx2) and run folders (/tmp/gprflow-*) are
 # counted. It fails when a run fails, when two runs disagree on any message count (a message
-# lost; but for what a feedback input read, which ends with the consumer), when anything is left behind after a run, or when a process's peak RSS grows from
-# the first run to the last or its open files from the first half of the runs to the second.
+# lost; but for what a feedback input read, which ends with the consumer), when anything is
+# left behind after a run, or when a process's peak RSS grows from the first run to the last or
+# its open files from the first half of the runs to the second.
 #
 # usage: tools/bench/soak.sh [MINUTES (30)] [GRAPH (localize)] [RECORDING (the graph's own)]
 #   GPRFLOW=path/to/gprflow picks the binary (default: a release build, made here).
