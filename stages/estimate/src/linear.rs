@@ -5,7 +5,6 @@
 //! structure and the faer symbolic factorisation (fill-reducing ordering and elimination tree)
 //! is reused for every numeric factorisation with that structure.
 
-use std::collections::BTreeSet;
 
 use std::sync::Arc;
 
@@ -145,28 +144,29 @@ pub struct HessianStructure {
 /// The lower block pattern `(row, column)` of the factors over the positions of `ordering`, and
 /// each position's dimension.
 fn block_pattern(graph: &FactorGraph, factors: &[usize], ordering: &Ordering) -> (Vec<(usize, usize)>, Vec<usize>) {
-    let mut blocks = BTreeSet::new();
-    for (p, _) in ordering.free.iter().enumerate() {
-        blocks.insert((p, p));
-    }
+    let mut blocks: Vec<(usize, usize)> = (0..ordering.free.len()).map(|p| (p, p)).collect();
     let mut keys = Vec::new();
     for &fi in factors {
         keys.clear();
         keys.extend(graph.factors()[fi].keys().iter().filter_map(|k| ordering.position(*k)));
         for &a in &keys {
             for &b in &keys {
-                if a >= b {
-                    blocks.insert((a, b));
+                if a > b {
+                    blocks.push((a, b));
                 }
             }
         }
     }
+    // Sorted and deduplicated once: a set grown pair by pair was half the time of building a
+    // structure (perf, the 20.9-minute localisation run).
+    blocks.sort_unstable();
+    blocks.dedup();
     let dims = ordering
         .free
         .iter()
         .filter_map(|v| ordering.slot(*v).map(|s| s.1))
         .collect();
-    (blocks.into_iter().collect(), dims)
+    (blocks, dims)
 }
 
 /// Approximate minimum degree order of the variables of a lower block pattern: per position,
