@@ -460,12 +460,16 @@ fn median_abs_nonzero(values: &[f64]) -> f64 {
     if mags.is_empty() {
         return 0.0;
     }
-    mags.sort_by(f64::total_cmp);
+    // The middle order statistics by selection, not a whole sort (the sort was 7 % of the
+    // submap filter's time on the localisation graph).
     let n = mags.len();
+    let (below, upper, _) = mags.select_nth_unstable_by(n / 2, f64::total_cmp);
+    let upper = *upper;
     if n % 2 == 1 {
-        mags[n / 2]
+        upper
     } else {
-        0.5 * (mags[n / 2 - 1] + mags[n / 2])
+        let lower = below.iter().copied().max_by(f64::total_cmp).unwrap_or(upper);
+        0.5 * (lower + upper)
     }
 }
 
@@ -603,6 +607,33 @@ mod tests {
 
     const RECONSTRUCTION: f64 = 1e-12;
     const ALL: [Wavelet; 5] = [Wavelet::Haar, Wavelet::Db1, Wavelet::Db2, Wavelet::Db3, Wavelet::Db4];
+
+    #[test]
+    fn median_of_the_non_zero_magnitudes_by_selection_equals_the_sorted_middle() {
+        let sorted_median = |values: &[f64]| {
+            let mut m: Vec<f64> = values.iter().filter(|v| **v != 0.0).map(|v| v.abs()).collect();
+            m.sort_by(f64::total_cmp);
+            match m.len() {
+                0 => 0.0,
+                n if n % 2 == 1 => m[n / 2],
+                n => 0.5 * (m[n / 2 - 1] + m[n / 2]),
+            }
+        };
+        for n in 0..40 {
+            let values: Vec<f64> = (0..n)
+                .map(|i| {
+                    if i % 5 == 0 {
+                        0.0
+                    } else {
+                        ((i * 7919) % 101) as f64 / 10.0 - 5.0
+                    }
+                })
+                .collect();
+            assert_eq!(median_abs_nonzero(&values), sorted_median(&values), "n = {n}");
+        }
+        assert_eq!(median_abs_nonzero(&[0.0, 0.0]), 0.0);
+        assert_eq!(median_abs_nonzero(&[-3.0, 1.0, 0.0, 2.0, -4.0]), 2.5);
+    }
 
     fn plane(rows: usize, cols: usize) -> Plane {
         let data = (0..rows * cols)
