@@ -5,7 +5,6 @@
 //! structure and the faer symbolic factorisation (fill-reducing ordering and elimination tree)
 //! is reused for every numeric factorisation with that structure.
 
-
 use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack};
