@@ -621,8 +621,8 @@ enum BenchCommand {
 /// raised to at most 32 MiB as blocks are freed) or a free top of its heap over twice that,
 /// so the estimator's re-solves, which build and drop factorisations of tens of MiB, took
 /// fresh zeroed pages from the kernel for every solve (page clearing alone was 7 % of the
-/// estimator's CPU on a 21-minute localisation run). The peak memory is unchanged; memory
-/// freed after a peak stays with the process.
+/// estimator's CPU on a 21-minute localisation run). A process's peak memory is reached
+/// either way; what it frees after its peak now stays with it until it exits.
 fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
