@@ -4,11 +4,14 @@
 # its share of the run's CPU time, its callback p50/p99 and its peak RSS (from the reports the
 # stages hand to `gprflow launch --report`). Recordings of 5, 20 and 60 minutes of sensor time
 # are made on demand by the simulator (basement world; `long` is its 20.9-minute run, `hour`
-# its 62.7-minute run, the 5-minute one is `long` cut with --duration).
+# its 62.7-minute run, the 5-minute one is `long` cut with --duration). The LGPR graph
+# (`lgpr`: graphs/lgpr-track.yaml) tracks laps of the highway world at 97 km/h (`long_97`,
+# `long_97_20`, `long_97_60`: 5, 20 and 57 laps) against a map built first from its `map`
+# run with graphs/lgpr-map.yaml (all made on demand; the 20-minute recording is about 0.7 GB).
 #
 # usage: tools/bench/scale.sh [GRAPH:MINUTES[:VAR=VALUE,...] ...]
 #   default: submaps:5 submaps:20 submaps:60 odometry:5 odometry:20 odometry:60 localize:5 localize:20
-#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam); MINUTES is 5, 20 or 60;
+#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam) or lgpr; MINUTES is 5, 20 or 60;
 #   VAR=VALUE pairs are graph variables set for that run (e.g. localize:60:resolve_window=4000).
 #   submaps runs with a submap every 0.5 m (its default 0.02 m is for pictures). The
 #   localisation graph's 20-minute run takes about 9 minutes (its loop-closure re-solves).
@@ -25,8 +28,24 @@ fi
 mkdir -p "$out"
 cargo build -q --release -p gprflow-cli
 
+# the recording of a world (basement or highway) and length, made on demand
 recording() {
-    local minutes=$1 file="$out/basement-${1}min.mcap"
+    local world=$1 minutes=$2 file="$out/$1-${2}min.mcap"
+    if [ "$world" = highway ]; then
+        local run
+        case $minutes in
+            5) run=long_97 ;;
+            20) run=long_97_20 ;;
+            60) run=long_97_60 ;;
+            *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
+        esac
+        if [ ! -f "$file" ]; then
+            "$gprflow" sim tools/sim/scenarios/highway.yaml --run $run -o "$file.part" --json > "$file.json"
+            mv "$file.part" "$file"
+        fi
+        echo "$file"
+        return
+    fi
     if [ ! -f "$file" ]; then
         case $minutes in
             5) "$gprflow" sim tools/sim/scenarios/basement.yaml --run long --duration 300 -o "$file.part" --json > "$file.json" ;;
@@ -39,16 +58,33 @@ recording() {
     echo "$file"
 }
 
+# the highway map the LGPR runs track against, made on demand from the world's mapping run
+lgpr_map() {
+    local map="$out/highway.lgprmap"
+    if [ ! -e "$map" ]; then
+        [ -f "$out/highway-map.mcap" ] ||
+            "$gprflow" sim tools/sim/scenarios/highway.yaml --run map -o "$out/highway-map.mcap" > /dev/null
+        "$gprflow" launch graphs/lgpr-map.yaml --set recording="$out/highway-map.mcap" --set map="$map.part" \
+            --log warn > /dev/null
+        mv "$map.part" "$map"
+    fi
+    echo "$map"
+}
+
 for run in "${runs[@]}"; do
     IFS=: read -r graph minutes vars <<< "$run"
     name="$graph-${minutes}min${vars:+-$vars}"
-    rec=$(recording "$minutes")
+    world=basement
+    file=$graph
+    if [ "$graph" = lgpr ]; then world=highway file=lgpr-track; fi
+    rec=$(recording "$world" "$minutes")
     sets=(--set "recording=$rec")
     if [ "$graph" = submaps ]; then sets+=(--set spacing_m=0.5); fi
+    if [ "$graph" = lgpr ]; then sets+=(--set "map=$(lgpr_map)"); fi
     IFS=, read -r -a pairs <<< "$vars"
     for pair in "${pairs[@]}"; do sets+=(--set "$pair"); done
     echo "== $graph on $rec ${vars}" >&2
-    "$gprflow" launch "graphs/$graph.yaml" "${sets[@]}" --log info \
+    "$gprflow" launch "graphs/$file.yaml" "${sets[@]}" --log info \
         --report "$out/$name.json" 2> "$out/$name.log" \
         || { echo "$graph on $rec failed: see $out/$name.log" >&2; exit 1; }
 done
@@ -61,8 +97,9 @@ print("|---|---:|---:|---:|---|---:|---:|---:|---:|")
 for run in runs:
     graph, minutes, *vars = run.split(":")
     rep = json.load(open(f"{out}/{graph}-{minutes}min{''.join('-' + v for v in vars)}.json"))
+    world = "highway" if graph == "lgpr" else "basement"
     graph += "".join(f" ({v})" for v in vars)
-    sim = json.load(open(f"{out}/basement-{minutes}min.mcap.json"))
+    sim = json.load(open(f"{out}/{world}-{minutes}min.mcap.json"))
     sensor_s = sim["duration_s"]
     nodes = [n for n in rep["nodes"] if n["report"]]
     cpu = sum(n["report"]["cpu_s"] for n in nodes) or 1.0
@@ -77,6 +114,6 @@ for run in runs:
     missing = [n["node"] for n in rep["nodes"] if not n["report"]]
     if missing:
         print(f"| | | | | no report: {', '.join(missing)} | | | | |")
-    size = os.path.getsize(f"{out}/basement-{minutes}min.mcap")
+    size = os.path.getsize(f"{out}/{world}-{minutes}min.mcap")
     print(f"| | | | | (recording: {size / 2**20:.0f} MiB) | | | | |")
 PY
