@@ -30,29 +30,18 @@ cargo build -q --release -p gprflow-cli
 
 # the recording of a world (basement or highway) and length, made on demand
 recording() {
-    local world=$1 minutes=$2 file="$out/$1-${2}min.mcap"
-    if [ "$world" = highway ]; then
-        local run
-        case $minutes in
-            5) run=long_97 ;;
-            20) run=long_97_20 ;;
-            60) run=long_97_60 ;;
-            *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
-        esac
-        if [ ! -f "$file" ]; then
-            "$gprflow" sim tools/sim/scenarios/highway.yaml --run $run -o "$file.part" --json > "$file.json"
-            mv "$file.part" "$file"
-        fi
-        echo "$file"
-        return
-    fi
+    local world=$1 minutes=$2 file="$out/$1-${2}min.mcap" args
+    case $world:$minutes in
+        basement:5) args=(--run long --duration 300) ;;
+        basement:20) args=(--run long) ;;
+        basement:60) args=(--run hour) ;;
+        highway:5) args=(--run long_97) ;;
+        highway:20) args=(--run long_97_20) ;;
+        highway:60) args=(--run long_97_60) ;;
+        *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
+    esac
     if [ ! -f "$file" ]; then
-        case $minutes in
-            5) "$gprflow" sim tools/sim/scenarios/basement.yaml --run long --duration 300 -o "$file.part" --json > "$file.json" ;;
-            20) "$gprflow" sim tools/sim/scenarios/basement.yaml --run long -o "$file.part" --json > "$file.json" ;;
-            60) "$gprflow" sim tools/sim/scenarios/basement.yaml --run hour -o "$file.part" --json > "$file.json" ;;
-            *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
-        esac
+        "$gprflow" sim "tools/sim/scenarios/$world.yaml" "${args[@]}" -o "$file.part" --json > "$file.json"
         mv "$file.part" "$file"
     fi
     echo "$file"
