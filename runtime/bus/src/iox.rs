@@ -124,12 +124,20 @@ pub fn bus_prefix(name: &str) -> std::result::Result<String, String> {
     }
 }
 
+/// How long a process waits for a service or node resource another process is creating or
+/// cleaning up ([`run_config`]).
+pub const CREATION_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// iceoryx2 settings of a run: every process of the run uses the same prefix.
 pub fn run_config(prefix: &str) -> std::result::Result<Config, String> {
     // defaults, not a config file: every process of a run must agree
     let mut config = Config::default();
     config.global.prefix =
         FileName::new(prefix.as_bytes()).map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
+    // how long opening a service another process is creating may take: iceoryx2's 1 s default
+    // ran out once when a loaded machine started many runs at once (a stage failed with
+    // `EventOpenError(DoesNotExist)` for a service its neighbour was still creating)
+    config.global.creation_timeout = CREATION_TIMEOUT;
     Ok(config)
 }
 
