@@ -481,6 +481,12 @@ impl Outbox {
         self.sent
     }
 
+    /// The newest stamp sent or promised ([`Outbox::advance_watermark`]): nothing stamped
+    /// before it can be sent any more.
+    pub fn watermark_ns(&self) -> i64 {
+        self.watermark_ns
+    }
+
     /// The underlying publisher (for handshakes).
     pub fn publisher(&self) -> &dyn Publisher {
         self.publisher.as_ref()

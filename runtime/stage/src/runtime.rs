@@ -341,6 +341,13 @@ impl Outputs {
         Ok(())
     }
 
+    /// The newest stamp sent or promised on `port`: a message stamped before it is refused
+    /// (what a stage that holds data back until [`Stage::finish`] checks there).
+    #[must_use]
+    pub fn watermark_ns<M: Message>(&self, port: Output<M>) -> i64 {
+        self.outboxes[port.index].watermark_ns()
+    }
+
     /// Data frames sent on all outputs so far.
     fn sent(&self) -> u64 {
         self.outboxes.iter().map(Outbox::sent).sum()

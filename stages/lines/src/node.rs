@@ -136,6 +136,12 @@ fn message(o: &Observation) -> LineObservation {
     }
 }
 
+/// Splits the observations released at the end into those that can still go out (stamped
+/// at `watermark_ns` or later) and those that cannot.
+fn in_stamp_order(observations: Vec<Observation>, watermark_ns: i64) -> (Vec<Observation>, Vec<Observation>) {
+    observations.into_iter().partition(|o| o.stamp_ns >= watermark_ns)
+}
+
 impl LinesStage {
     fn send(&self, observations: &[Observation], out: &mut Outputs) -> std::result::Result<(), StageError> {
         for o in observations {
@@ -243,17 +249,30 @@ impl Stage for LinesStage {
     }
 
     fn finish(&mut self, out: &mut Outputs) -> std::result::Result<(), StageError> {
-        let last = self.observer.finish();
+        let (last, late) = in_stamp_order(self.observer.finish(), out.watermark_ns(self.out));
         self.send(&last, out)?;
+        if let Some(first) = late.first() {
+            tracing::warn!(
+                observations = late.len(),
+                stamp_ns = first.stamp_ns,
+                watermark_ns = out.watermark_ns(self.out),
+                "lines: the drive ended before it left its newest hyperbolas behind; their \
+                 observations, measured at the last submap's end, are older than what the \
+                 submaps' stream had already promised downstream (the recording goes on after \
+                 its last submap), so they are not sent"
+            );
+        }
         let (c, o) = (&self.counts, &self.observer);
+        let sent = o.released() - late.len() as u64;
         tracing::info!(
             submaps = c.submaps,
             invalid = c.invalid,
             hyperbolas = o.hyperbolas(),
-            sent = o.released(),
+            sent,
+            late = late.len(),
             lines = o.line_count(),
             "lines: {} observations of {} lines from {} submaps",
-            o.released(),
+            sent,
             o.line_count(),
             c.submaps
         );
@@ -265,6 +284,22 @@ impl Stage for LinesStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn what_the_end_releases_behind_the_promised_watermark_is_held_back() {
+        let at = |stamp_ns: i64, line_id: u32| Observation {
+            stamp_ns,
+            line_id,
+            ..Observation::default()
+        };
+        // the last submap ended at 314.58 s; the submaps' stream had promised 317.21 s
+        let (sent, late) = in_stamp_order(vec![at(314_580, 1), at(314_580, 2)], 317_210);
+        assert!(sent.is_empty());
+        assert_eq!(late.iter().map(|o| o.line_id).collect::<Vec<_>>(), [1, 2]);
+        // where the recording ends with its last submap, they go
+        let (sent, late) = in_stamp_order(vec![at(317_210, 1)], 317_210);
+        assert_eq!((sent.len(), late.len()), (1, 0));
+    }
 
     #[test]
     fn params_are_checked_with_their_keys() {

@@ -148,7 +148,7 @@ pub struct ObserverParams {
 }
 
 /// One line observation: a hyperbola's apex measured from the newest submap's end.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Observation {
     /// The newest submap's newest trace, where the forward distance is measured from, ns.
     pub stamp_ns: i64,
