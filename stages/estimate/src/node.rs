@@ -107,6 +107,12 @@ pub struct EstimateParams {
     pub registration_gate_sigmas: f64,
     /// Minimum baseline that initialises a line, m (default 1.0).
     pub line_min_baseline_m: f64,
+    /// Mahalanobis gate on line observations, standard deviations (default 0: off): an
+    /// observation of a mapped line whose forward distance is further than this many
+    /// standard deviations of the estimate's prediction (the forward distance's marginal
+    /// uncertainty, state and line together, and the observation's sigma) is dropped as a
+    /// wrong association.
+    pub line_gate_sigmas: f64,
     /// Non-holonomic constraint sigma, m/s; 0 disables it (default 0.1).
     pub nonholonomic_sigma_mps: f64,
     /// Without an `initial_pose`, `gps` or `map_fix` input, the first state's roll and pitch
@@ -131,7 +137,8 @@ pub struct EstimateParams {
     /// Also publish the verdict on every registration (taken, or dropped by the gate, with
     /// its residual and predicted sigma: one whole-graph factorisation per update that brings
     /// registrations) on the `registration_check` output (`RegistrationCheck`), for
-    /// `gprflow eval` (default false).
+    /// `gprflow eval`, and log every line observation's residual and predicted sigma at debug
+    /// level (default false).
     pub diagnostics: bool,
 }
 
@@ -165,6 +172,7 @@ impl Default for EstimateParams {
             registration_gate_growth_mps: o.registration_gate_growth_mps,
             registration_gate_sigmas: o.registration_gate_sigmas,
             line_min_baseline_m: o.line_min_baseline_m,
+            line_gate_sigmas: o.line_gate_sigmas,
             nonholonomic_sigma_mps: o.nonholonomic_sigma_mps,
             gravity_align_s: o.gravity_align_s,
             snapshot_every_states: 10,
@@ -212,6 +220,7 @@ impl EstimateParams {
             registration_gate_growth_mps: self.registration_gate_growth_mps,
             registration_gate_sigmas: self.registration_gate_sigmas,
             line_min_baseline_m: self.line_min_baseline_m,
+            line_gate_sigmas: self.line_gate_sigmas,
             nonholonomic_sigma_mps: self.nonholonomic_sigma_mps,
             gravity_align_s: self.gravity_align_s,
             first_state: FirstStatePrior {
@@ -263,6 +272,7 @@ impl EstimateParams {
             ("registration_gate_m", self.registration_gate_m),
             ("registration_gate_growth_mps", self.registration_gate_growth_mps),
             ("registration_gate_sigmas", self.registration_gate_sigmas),
+            ("line_gate_sigmas", self.line_gate_sigmas),
             ("snapshot_growth", self.snapshot_growth),
         ];
         for (key, value) in off_or_positive {
@@ -674,12 +684,18 @@ impl Stage for EstimateStage {
                 "estimate: registrations further than the registration gate from the estimate, dropped"
             );
         }
+        if self.est.gated_lines() > 0 {
+            tracing::info!(
+                gated = self.est.gated_lines(),
+                "estimate: line observations further than the line gate from the estimate, dropped"
+            );
+        }
         let (solves, solve_s) = self.est.gate_solves();
         if solves > 0 {
             tracing::info!(
                 solves,
                 solve_s,
-                "estimate: whole-graph factorisations for the registration gate"
+                "estimate: whole-graph factorisations for the registration and line gates"
             );
         }
         if let Some(t) = self.est.solve_times() {

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use nalgebra::{DMatrix, Vector2, Vector3};
 
+use crate::factor::Factor;
 use crate::factors::{
     BetweenPose, LineDistance, NonHolonomic, PosePrior, PositionAxes, PositionFix, TrackOffset, VectorPrior,
 };
@@ -61,6 +62,14 @@ pub struct OnlineParams {
     pub registration_across_sigma_m: f64,
     /// Minimum baseline between the two observations that initialise a line, m.
     pub line_min_baseline_m: f64,
+    /// Mahalanobis gate on line observations, in standard deviations (0: off): an observation
+    /// of a line the graph already holds whose forward distance is further from the one the
+    /// current estimate predicts than this many standard deviations of the prediction is
+    /// dropped as a wrong association. The prediction's variance is the estimate's marginal
+    /// variance of the forward distance from the state to the line (state and line solved
+    /// together, their correlation included; [`crate::relative`]) plus the observation's
+    /// sigma squared.
+    pub line_gate_sigmas: f64,
     /// Prior sigma on a new line's `(rho, theta)`.
     pub line_prior_sigma: f64,
     /// Sigma of the ground-vehicle constraint on lateral and vertical body velocity, m/s (0: off).
@@ -119,6 +128,7 @@ impl Default for OnlineParams {
             registration_gate_sigmas: 0.0,
             registration_across_sigma_m: 0.0,
             line_min_baseline_m: 1.0,
+            line_gate_sigmas: 0.0,
             line_prior_sigma: 1.0,
             nonholonomic_sigma_mps: 0.1,
             first_state: FirstStatePrior::default(),
@@ -252,6 +262,8 @@ pub struct OnlineEstimator {
     taken: Vec<Taken>,
     /// Whole-graph factorisations made for the gate, and their wall time, s.
     gate_solves: (u64, f64),
+    /// Line observations the line gate dropped.
+    gated_lines: u64,
 }
 
 /// A registration taken since the last update.
@@ -317,12 +329,15 @@ impl OnlineEstimator {
             solved_factors: 0,
             taken: Vec::new(),
             gate_solves: (0, 0.0),
+            gated_lines: 0,
         }
     }
 
     /// Computes every registration's predicted sigma ([`RegistrationOutcome`]'s `sigma_m`),
-    /// also those the gate accepts on the registration's own sigma (diagnostics; one whole-graph
-    /// factorisation per update that brings registrations).
+    /// also those the gate accepts on the registration's own sigma, and every line
+    /// observation's (logged at debug level, "line observation against the estimate")
+    /// (diagnostics; one whole-graph factorisation per update that brings registrations or
+    /// line observations).
     pub fn report_registration_sigmas(&mut self, on: bool) {
         self.report_sigmas = on;
     }
@@ -344,11 +359,17 @@ impl OnlineEstimator {
         self.unmatched_fixes
     }
 
-    /// Whole-graph factorisations made for the registration gate so far, and their wall
-    /// time, s.
+    /// Whole-graph factorisations made for the registration and line gates so far, and their
+    /// wall time, s.
     #[must_use]
     pub fn gate_solves(&self) -> (u64, f64) {
         self.gate_solves
+    }
+
+    /// Line observations the line gate (`line_gate_sigmas`) dropped so far.
+    #[must_use]
+    pub fn gated_lines(&self) -> u64 {
+        self.gated_lines
     }
 
     /// Where the fixed-lag smoother's time went so far (`None` for the incremental one).
@@ -584,16 +605,7 @@ impl OnlineEstimator {
     /// predicted variance there (the marginal along-track variance between the two states plus
     /// `measurement_var`), and the covariance times its gradient.
     fn conditioned(&mut self, pi: VarId, pj: VarId, residual_m: f64, measurement_var: f64) -> Result<Gain> {
-        if self.information.is_none() {
-            let start = Instant::now();
-            self.information = Some(WholeGraphInformation::new(
-                &self.graph,
-                self.solved_factors,
-                &self.values,
-            )?);
-            self.gate_solves.0 += 1;
-            self.gate_solves.1 += start.elapsed().as_secs_f64();
-        }
+        self.make_information()?;
         // the gains of the ones taken without one (their residuals were small), in order
         let mut taken = std::mem::take(&mut self.taken);
         let out = (|| {
@@ -608,6 +620,54 @@ impl OnlineEstimator {
         })();
         self.taken = taken;
         out
+    }
+
+    /// Makes the whole graph's information at the estimate as last solved, unless made since.
+    fn make_information(&mut self) -> Result<()> {
+        if self.information.is_none() {
+            let start = Instant::now();
+            self.information = Some(WholeGraphInformation::new(
+                &self.graph,
+                self.solved_factors,
+                &self.values,
+            )?);
+            self.gate_solves.0 += 1;
+            self.gate_solves.1 += start.elapsed().as_secs_f64();
+        }
+        Ok(())
+    }
+
+    /// Whether the line gate drops `factor`, an observation of a line the graph holds: its
+    /// residual at the current estimate further than `line_gate_sigmas` standard deviations
+    /// of its prediction (the forward distance's marginal variance plus `sigma_m` squared).
+    /// One within that many of the observation's own sigma passes without the whole graph's
+    /// information.
+    fn line_gated(&mut self, factor: &LineDistance, line_id: u32, sigma_m: f64) -> Result<bool> {
+        let sigmas = self.params.line_gate_sigmas;
+        let gate = sigmas > 0.0;
+        if !(gate || self.report_sigmas) {
+            return Ok(false);
+        }
+        let residual_m = factor.evaluate(&self.values, None)?[0];
+        if !self.report_sigmas && residual_m.abs() <= sigmas * sigma_m {
+            return Ok(false);
+        }
+        self.make_information()?;
+        let info = self
+            .information
+            .as_ref()
+            .ok_or_else(|| Error::LinearSolve("no whole-graph information for the line gate".into()))?;
+        let variance = info.variance(factor, &self.values)? + sigma_m * sigma_m;
+        let gated = gate && residual_m.abs() > sigmas * variance.sqrt();
+        tracing::debug!(
+            line = line_id,
+            residual_m,
+            sigma_m = variance.sqrt(),
+            gated,
+            "line observation against the estimate"
+        );
+        self.gated_lines += u64::from(gated);
+        Ok(gated)
     }
 
     /// [`OnlineEstimator::conditioned`] on the registrations `taken`, whose gains are known.
@@ -658,6 +718,9 @@ impl OnlineEstimator {
     }
 
     /// Adds a line observation from the state nearest `stamp_ns`; `false` when none matches.
+    /// With `line_gate_sigmas`, an observation of a line the graph holds that the estimate
+    /// cannot explain is dropped ([`OnlineEstimator::gated_lines`]; `true`: it matched a
+    /// state).
     ///
     /// # Errors
     /// A bad sigma.
@@ -678,12 +741,10 @@ impl OnlineEstimator {
         let pose = self.states[s].pose;
         let entry = self.lines.entry(line_id).or_default();
         if let Some(var) = entry.var {
-            self.graph.add(LineDistance::new(
-                pose,
-                var,
-                distance_m,
-                NoiseModel::isotropic(1, sigma)?,
-            )?);
+            let factor = LineDistance::new(pose, var, distance_m, NoiseModel::isotropic(1, sigma)?)?;
+            if !self.line_gated(&factor, line_id, sigma)? {
+                self.graph.add(factor);
+            }
             return Ok(true);
         }
         entry.buffered.push((s, distance_m, sigma));
@@ -1317,6 +1378,60 @@ mod tests {
             (line.rho_m - truth.rho_m).abs() < 0.1 && (line.theta_rad - truth.theta_rad).abs() < 0.02,
             "{line:?} against {truth:?}"
         );
+    }
+
+    #[test]
+    fn the_line_gate_drops_an_observation_the_estimate_cannot_explain() {
+        // The line of the test above, on a 70 s drive: observed from every state 0.5-4 m
+        // before it, in three crossings (the first has no baseline: the line is made at the
+        // second, the 37th observation; the third, from the 67th, comes 38 s of dead reckoning
+        // later). Observation `wrong_at` is `wrong_m` long (`None`: not made). Gated at
+        // `sigmas`; returns whether that one was gated, how many were, and the line's error.
+        let truth = HoughLine {
+            rho_m: 6.0,
+            theta_rad: 0.2,
+        };
+        let run = |wrong_at: usize, wrong_m: Option<f64>, sigmas: f64| {
+            let params = OnlineParams {
+                line_gate_sigmas: sigmas,
+                ..OnlineParams::default()
+            };
+            let (mut observed, mut wrong_gated) = (0, false);
+            let est = drive_circle_params(70, 1.0, params, |est, s| {
+                let (h, _, _) =
+                    crate::factors::forward_distance_to_line(&circle_truth(s.stamp_ns as f64 * 1e-9), &truth);
+                if (0.5..4.0).contains(&h) {
+                    observed += 1;
+                    let before = est.gated_lines();
+                    let z = if observed == wrong_at {
+                        wrong_m.map(|w| h + w)
+                    } else {
+                        Some(h)
+                    };
+                    if let Some(z) = z {
+                        assert!(est.line(s.stamp_ns, 7, z, 0.05).expect("line"));
+                    }
+                    wrong_gated |= observed == wrong_at && est.gated_lines() > before;
+                }
+            });
+            let line = est.line_map()[0].1;
+            let error = (line.rho_m - truth.rho_m).hypot(line.theta_rad - truth.theta_rad);
+            (wrong_gated, est.gated_lines(), error)
+        };
+        // in the second crossing the estimate knows where the line is to a few cm: 0.5 m off
+        // is dropped, and only it
+        let (wrong_gated, gated, error) = run(50, Some(0.5), 3.0);
+        assert!(wrong_gated);
+        assert_eq!(gated, 1);
+        // dropped, it changes nothing; taken, it pulls the line off
+        let (_, none_gated, without) = run(50, None, 3.0);
+        assert_eq!(none_gated, 0);
+        assert!((error - without).abs() < 1e-9, "{error} against {without}");
+        let (_, _, pulled) = run(50, Some(0.5), 0.0);
+        assert!(pulled > without + 0.001, "taken {pulled}, without {without}");
+        // after 38 s of dead reckoning the estimate cannot tell 0.5 m: the same miss passes
+        let (wrong_gated, _, _) = run(67, Some(0.5), 3.0);
+        assert!(!wrong_gated);
     }
 
     #[test]
