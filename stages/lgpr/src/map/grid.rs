@@ -105,35 +105,17 @@ pub struct LocalGrid {
 impl LocalGrid {
     /// Grids `sources` (map columns of `samples` samples) around `centre`.
     pub fn build(spec: &GridSpec, centre: [f64; 2], samples: usize, sources: &[&Columns]) -> Self {
-        Self::build_in(None, spec, centre, samples, sources)
-    }
-
-    /// As [`LocalGrid::build`], in the memory of `spare` (a grid no longer used) when given:
-    /// a pager that hands its old grids back grids a route of any length in the same memory,
-    /// instead of allocating and freeing tens of megabytes a grid (which the allocator's
-    /// arenas keep, fragmented, as the route goes on).
-    pub fn build_in(
-        spare: Option<Self>,
-        spec: &GridSpec,
-        centre: [f64; 2],
-        samples: usize,
-        sources: &[&Columns],
-    ) -> Self {
         let n = spec.points();
         let half = (n as f64 - 1.0) / 2.0 * spec.spacing_m;
         let origin = [centre[0] - half, centre[1] - half];
-        let (mut index, mut values) = spare.map_or_else(Default::default, |g| (g.index, g.values));
-        index.clear();
-        index.resize(n * n, EMPTY);
-        values.clear();
         let mut grid = Self {
             centre,
             origin,
             n,
             spacing: spec.spacing_m,
             samples,
-            index,
-            values,
+            index: vec![EMPTY; n * n],
+            values: Vec::new(),
             window: None,
         };
         let mut weights: Vec<f32> = Vec::new();
@@ -206,21 +188,6 @@ impl LocalGrid {
         centre: [f64; 2],
         window_len: usize,
     ) -> Result<(Self, Vec<StoreError>), StoreError> {
-        Self::from_map_in(None, map, spec, centre, window_len)
-    }
-
-    /// As [`LocalGrid::from_map_with_window`], in the memory of `spare` when given
-    /// ([`LocalGrid::build_in`]).
-    ///
-    /// # Errors
-    /// `Io` reading a tile.
-    pub fn from_map_in(
-        mut spare: Option<Self>,
-        map: &MapReader,
-        spec: &GridSpec,
-        centre: [f64; 2],
-        window_len: usize,
-    ) -> Result<(Self, Vec<StoreError>), StoreError> {
         let reach = spec.size_m / 2.0 + spec.spacing_m + spec.radius_m;
         let window = [
             centre[0] - reach,
@@ -238,33 +205,21 @@ impl LocalGrid {
             sources.push(t.columns);
         }
         let refs: Vec<&Columns> = sources.iter().collect();
-        let energies = spare
-            .as_mut()
-            .and_then(|g| g.window.take())
-            .map(|(_, e)| e)
-            .unwrap_or_default();
-        let mut grid = Self::build_in(spare, spec, centre, map.info().samples as usize, &refs);
-        grid.tabulate_window(window_len, energies);
+        let mut grid = Self::build(spec, centre, map.info().samples as usize, &refs);
+        grid.prepare_window(window_len);
         Ok((grid, damage))
     }
 
     /// Tabulates the energy of every window of `len` samples of every slot, so that a
     /// correlation needs only the products (`len` beyond the samples: nothing to tabulate).
     pub fn prepare_window(&mut self, len: usize) {
-        let energies = self.window.take().map(|(_, e)| e).unwrap_or_default();
-        self.tabulate_window(len, energies);
-    }
-
-    /// [`LocalGrid::prepare_window`] into `energies` (cleared first).
-    fn tabulate_window(&mut self, len: usize, mut energies: Vec<f32>) {
         if len == 0 || len > self.samples {
             self.window = None;
             return;
         }
         let starts = self.samples - len + 1;
         let slots = self.occupied();
-        energies.clear();
-        energies.reserve(slots * starts);
+        let mut energies = Vec::with_capacity(slots * starts);
         for s in 0..slots {
             let col = &self.values[s * self.samples..(s + 1) * self.samples];
             // a running sum in f64 over the window as it slides
@@ -400,36 +355,6 @@ mod tests {
         let g = LocalGrid::build(&spec, [3.0, 4.0], 1, &[&cols]);
         let v = g.column(g.slot_at(on[0], on[1]).expect("must succeed"))[0];
         assert!(v.is_finite() && (v - 2.0).abs() < 0.11, "{v}");
-    }
-
-    #[test]
-    fn a_grid_built_in_a_spare_is_the_grid_built_fresh() {
-        let spec = GridSpec {
-            size_m: 2.0,
-            ..GridSpec::default()
-        };
-        let many: Vec<([f64; 2], f32)> = (0..40).map(|k| ([-0.9 + 0.045 * k as f64, 0.1], k as f32)).collect();
-        let few = [([0.5, -0.5], 3.0), ([0.6, -0.4], -1.0)];
-        let (many, few) = (columns(&many, 6), columns(&few, 6));
-        // the spare held more points and a window of another length than the new grid needs
-        let mut spare = LocalGrid::build(&spec, [0.0, 0.0], 6, &[&many]);
-        spare.prepare_window(2);
-        let mut fresh = LocalGrid::build(&spec, [0.2, 0.0], 6, &[&few]);
-        fresh.prepare_window(3);
-        let mut reused = LocalGrid::build_in(Some(spare), &spec, [0.2, 0.0], 6, &[&few]);
-        reused.prepare_window(3);
-        assert_eq!(reused.raw(), fresh.raw());
-        assert_eq!(reused.layout(), fresh.layout());
-        assert_eq!(reused.occupied(), fresh.occupied());
-        for slot in 0..fresh.occupied() {
-            for start in 0..4 {
-                assert_eq!(
-                    reused.window_energy(slot, start, 3),
-                    fresh.window_energy(slot, start, 3)
-                );
-            }
-        }
-        assert!(reused.window_energy(0, 0, 2).is_none());
     }
 
     #[test]

@@ -8,9 +8,6 @@
 //! vehicle would leave the current grid's usable part (20 m from its centre) before the next
 //! is ready, the tracker waits for it (a stall, counted). At 97 km/h the worker has the 15 m
 //! between request and edge, 0.55 s, to grid.
-//!
-//! A grid the tracker is done with goes back to the worker, which grids the next one in its
-//! memory: the route's memory is that of three grids at most, however long it is.
 
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
@@ -38,8 +35,6 @@ pub struct Gridded {
     pub took: Duration,
     /// Damaged tiles met (their readable part was used).
     pub damage: Vec<StoreError>,
-    /// Made in the memory of a grid handed back.
-    pub reused: bool,
 }
 
 /// What the pager did on one update.
@@ -61,10 +56,6 @@ pub struct GridPager {
     next: Option<Gridded>,
     requests: SyncSender<[f64; 2]>,
     results: Receiver<Result<Gridded, StoreError>>,
-    /// Grids handed back to the worker for their memory.
-    spares: SyncSender<LocalGrid>,
-    /// The grid last replaced, until the tracker lets go of it.
-    retired: Option<Arc<LocalGrid>>,
     /// Centre of the grid requested and not yet switched to (its grid is in `next` once made).
     next_centre: Option<[f64; 2]>,
     worker: Option<JoinHandle<()>>,
@@ -74,8 +65,6 @@ pub struct GridPager {
     pub stalls: u64,
     /// Damage met so far (reported once each by the caller).
     pub damage: Vec<StoreError>,
-    /// Grids made in the memory of one handed back.
-    pub grids_reused: u64,
 }
 
 impl GridPager {
@@ -85,25 +74,19 @@ impl GridPager {
         // one request at a time is outstanding (`next_centre`): two slots never block
         let (req_tx, req_rx) = sync_channel::<[f64; 2]>(2);
         let (res_tx, res_rx) = sync_channel(2);
-        // the retired grid and a made one dropped for a jump: two slots never block
-        let (spare_tx, spare_rx) = sync_channel::<LocalGrid>(2);
         let worker_spec = spec.clone();
         let worker = std::thread::Builder::new()
             .name("lgpr-grid".into())
             .spawn(move || {
                 for centre in req_rx {
                     let start = Instant::now();
-                    let spare = spare_rx.try_recv().ok();
-                    let reused = spare.is_some();
-                    let out =
-                        LocalGrid::from_map_in(spare, &map, &worker_spec, centre, window_len).map(|(grid, damage)| {
-                            Gridded {
-                                grid: Arc::new(grid),
-                                took: start.elapsed(),
-                                damage,
-                                reused,
-                            }
-                        });
+                    let out = LocalGrid::from_map_with_window(&map, &worker_spec, centre, window_len).map(
+                        |(grid, damage)| Gridded {
+                            grid: Arc::new(grid),
+                            took: start.elapsed(),
+                            damage,
+                        },
+                    );
                     if res_tx.send(out).is_err() {
                         break;
                     }
@@ -116,14 +99,11 @@ impl GridPager {
             next: None,
             requests: req_tx,
             results: res_rx,
-            spares: spare_tx,
-            retired: None,
             next_centre: None,
             worker,
             grid_times_s: Vec::new(),
             stalls: 0,
             damage: Vec::new(),
-            grids_reused: 0,
         }
     }
 
@@ -143,7 +123,6 @@ impl GridPager {
     fn accept(&mut self, g: Result<Gridded, StoreError>) -> Result<(), StoreError> {
         let mut g = g?;
         self.grid_times_s.push(g.took.as_secs_f64());
-        self.grids_reused += u64::from(g.reused);
         self.damage.append(&mut g.damage);
         self.next = Some(g);
         Ok(())
@@ -162,30 +141,9 @@ impl GridPager {
         if waited {
             self.wait()?;
         }
-        let old = std::mem::replace(&mut self.current, self.next.take().map(|g| g.grid));
-        if let Some(old) = old {
-            self.hand_back(old);
-        }
+        self.current = self.next.take().map(|g| g.grid);
         self.next_centre = None;
         Ok(waited)
-    }
-
-    /// Hands `grid` back to the worker for its memory once nobody else holds it (kept as
-    /// `retired` until then: the tracker holds the current grid while it tracks on it).
-    fn hand_back(&mut self, grid: Arc<LocalGrid>) {
-        // one retired at a time: an older one still held is simply dropped
-        self.retired = Some(grid);
-        self.recycle();
-    }
-
-    fn recycle(&mut self) {
-        if let Some(grid) = self.retired.take() {
-            match Arc::try_unwrap(grid) {
-                // a full queue (the worker has two already) drops it
-                Ok(grid) => drop(self.spares.try_send(grid)),
-                Err(held) => self.retired = Some(held),
-            }
-        }
     }
 
     /// Makes sure a grid covers the vehicle at `position` moving along `direction` (a unit
@@ -195,7 +153,6 @@ impl GridPager {
     /// Reading the map failed.
     pub fn update(&mut self, position: [f64; 2], direction: [f64; 2]) -> Result<PagerEvents, StoreError> {
         let mut ev = PagerEvents::default();
-        self.recycle();
         if self.next_centre.is_some()
             && self.next.is_none()
             && let Ok(g) = self.results.try_recv()
@@ -226,9 +183,7 @@ impl GridPager {
                 if self.next.is_none() {
                     self.wait()?;
                 }
-                if let Some(unused) = self.next.take() {
-                    self.hand_back(unused.grid);
-                }
+                self.next = None;
                 self.next_centre = None;
             }
             self.request(position)?;
@@ -302,12 +257,5 @@ mod tests {
         }
         assert!(switches > 20, "{switches}");
         assert!(pager.grid_times_s.len() >= switches - 1);
-        // every grid after the first two is made in the memory of one handed back
-        assert!(
-            pager.grids_reused + 2 >= pager.grid_times_s.len() as u64,
-            "{} of {}",
-            pager.grids_reused,
-            pager.grid_times_s.len()
-        );
     }
 }

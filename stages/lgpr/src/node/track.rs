@@ -329,15 +329,15 @@ impl Stage for LgprTrackStage {
                 0.0
             }
         };
-        let (grids, grids_reused, grid_p50_ms, grid_max_ms, stalls) = match &self.pager {
+        let (grids, grid_p50_ms, grid_max_ms, stalls) = match &self.pager {
             Some(p) => {
                 let mut t = p.grid_times_s.clone();
                 t.sort_by(f64::total_cmp);
                 let p50 = t.get(t.len() / 2).copied().unwrap_or(0.0) * 1e3;
                 let max = t.last().copied().unwrap_or(0.0) * 1e3;
-                (t.len(), p.grids_reused, p50, max, p.stalls)
+                (t.len(), p50, max, p.stalls)
             }
-            None => (0, 0, 0.0, 0.0, 0),
+            None => (0, 0.0, 0.0, 0),
         };
         tracing::info!(
             sweeps = c.sweeps,
@@ -355,7 +355,6 @@ impl Stage for LgprTrackStage {
                 }
             ),
             grids,
-            grids_reused,
             grid_p50_ms = format!("{grid_p50_ms:.0}"),
             grid_max_ms = format!("{grid_max_ms:.0}"),
             stalls,
