@@ -623,22 +623,30 @@ enum BenchCommand {
 /// fresh zeroed pages from the kernel for every solve (page clearing alone was 7 % of the
 /// estimator's CPU on a 21-minute localisation run). A process's peak memory is reached
 /// either way; what it frees after its peak now stays with it until it exits.
-fn keep_freed_memory() {
+/// `one_arena`: every thread allocates from one arena ([`gprflow_cli::one_malloc_arena`]).
+fn keep_freed_memory(one_arena: bool) {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         const KEEP_BYTES: libc::c_int = 1 << 30;
         // SAFETY: mallopt only sets malloc's parameters; called in main before any other
         // thread exists.
-        let (mmap, trim) = unsafe {
+        let (mmap, trim, arenas) = unsafe {
             (
                 libc::mallopt(libc::M_MMAP_THRESHOLD, KEEP_BYTES),
                 libc::mallopt(libc::M_TRIM_THRESHOLD, KEEP_BYTES),
+                if one_arena {
+                    libc::mallopt(libc::M_ARENA_MAX, 1)
+                } else {
+                    1
+                },
             )
         };
-        if mmap != 1 || trim != 1 {
-            tracing::debug!(mmap, trim, "malloc refused a threshold (1 on success)");
+        if mmap != 1 || trim != 1 || arenas != 1 {
+            tracing::debug!(mmap, trim, arenas, "malloc refused a setting (1 on success)");
         }
     }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    let _ = one_arena;
 }
 
 fn main() -> ExitCode {
@@ -651,7 +659,7 @@ fn main() -> ExitCode {
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_target(false)
         .init();
-    keep_freed_memory();
+    keep_freed_memory(matches!(&cli.command, Command::Stage { kind, .. } if gprflow_cli::one_malloc_arena(kind)));
     use gprflow_cli::commands;
     let result = match cli.command {
         Command::Launch {
