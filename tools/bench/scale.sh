@@ -8,14 +8,18 @@
 # (`lgpr`: graphs/lgpr-track.yaml) tracks laps of the highway world at 97 km/h (`long_97`,
 # `long_97_20`, `long_97_60`: 5, 20 and 57 laps) against a map built first from its `map`
 # run with graphs/lgpr-map.yaml (all made on demand; the 20-minute recording is about 0.7 GB).
+# `slam_pipes` runs the line-SLAM graph on the two-pipe field (pipes_two_lines: its lawnmower cut
+# to 5 minutes, `long` and `hour` for 20 and 60), where every row crosses both pipes.
 #
 # usage: tools/bench/scale.sh [GRAPH:MINUTES[:VAR=VALUE,...] ...]
 #   default: submaps:5 submaps:20 submaps:60 odometry:5 odometry:20 odometry:60 localize:5 localize:20
-#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam) or lgpr; MINUTES is 5, 20 or 60;
+#   GRAPH is a file of graphs/ (submaps, odometry, localize, slam), lgpr or slam_pipes; MINUTES is
+#   5, 20 or 60;
 #   VAR=VALUE pairs are graph variables set for that run (e.g. localize:60:resolve_window=4000).
 #   submaps runs with a submap every 0.5 m (its default 0.02 m is for pictures). The
 #   localisation graph's 20-minute run takes about 9 minutes (its loop-closure re-solves).
-# Results: out/bench/scale/{GRAPH}-{MINUTES}min[-VAR=VALUE,...].json (launch reports) and table.md.
+# Results: out/bench/scale/{GRAPH}-{MINUTES}min[-VAR=VALUE,...].json (launch reports), .recording
+# (the recording it replayed) and table.md.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 out=out/bench/scale
@@ -28,7 +32,7 @@ fi
 mkdir -p "$out"
 cargo build -q --release -p gprflow-cli
 
-# the recording of a world (basement or highway) and length, made on demand
+# the recording of a world (a scenario of tools/sim/scenarios) and length, made on demand
 recording() {
     local world=$1 minutes=$2 file="$out/$1-${2}min.mcap" args
     case $world:$minutes in
@@ -38,6 +42,9 @@ recording() {
         highway:5) args=(--run long_97) ;;
         highway:20) args=(--run long_97_20) ;;
         highway:60) args=(--run long_97_60) ;;
+        pipes_two_lines:5) args=(--run lawnmower --duration 300) ;;
+        pipes_two_lines:20) args=(--run long) ;;
+        pipes_two_lines:60) args=(--run hour) ;;
         *) echo "no recording of $minutes minutes (5, 20 or 60)" >&2; exit 2 ;;
     esac
     if [ ! -f "$file" ]; then
@@ -66,7 +73,10 @@ for run in "${runs[@]}"; do
     world=basement
     file=$graph
     if [ "$graph" = lgpr ]; then world=highway file=lgpr-track; fi
+    if [ "$graph" = slam_pipes ]; then world=pipes_two_lines file=slam; fi
     rec=$(recording "$world" "$minutes")
+    # the table reads which recording a run replayed from here
+    echo "$rec" > "$out/$name.recording"
     sets=(--set "recording=$rec")
     if [ "$graph" = submaps ]; then sets+=(--set spacing_m=0.5); fi
     if [ "$graph" = lgpr ]; then sets+=(--set "map=$(lgpr_map)"); fi
@@ -85,10 +95,11 @@ print("| graph | sensor min | wall s | x real time | process | CPU share | p50 u
 print("|---|---:|---:|---:|---|---:|---:|---:|---:|")
 for run in runs:
     graph, minutes, *vars = run.split(":")
-    rep = json.load(open(f"{out}/{graph}-{minutes}min{''.join('-' + v for v in vars)}.json"))
-    world = "highway" if graph == "lgpr" else "basement"
+    name = f"{out}/{graph}-{minutes}min{''.join('-' + v for v in vars)}"
+    rep = json.load(open(f"{name}.json"))
+    recording = open(f"{name}.recording").read().strip()
     graph += "".join(f" ({v})" for v in vars)
-    sim = json.load(open(f"{out}/{world}-{minutes}min.mcap.json"))
+    sim = json.load(open(f"{recording}.json"))
     sensor_s = sim["duration_s"]
     nodes = [n for n in rep["nodes"] if n["report"]]
     cpu = sum(n["report"]["cpu_s"] for n in nodes) or 1.0
@@ -103,6 +114,6 @@ for run in runs:
     missing = [n["node"] for n in rep["nodes"] if not n["report"]]
     if missing:
         print(f"| | | | | no report: {', '.join(missing)} | | | | |")
-    size = os.path.getsize(f"{out}/{world}-{minutes}min.mcap")
+    size = os.path.getsize(recording)
     print(f"| | | | | (recording: {size / 2**20:.0f} MiB) | | | | |")
 PY
