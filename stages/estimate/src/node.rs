@@ -512,7 +512,7 @@ impl Stage for EstimateStage {
 
     fn create(params: Self::Params, ports: &Ports) -> Result<Self, StageError> {
         let mut est = OnlineEstimator::new(params.online());
-        est.report_registration_sigmas(params.diagnostics);
+        est.report_gate_sigmas(params.diagnostics);
         let no_initial_pose = ports.input("initial_pose").is_none();
         let anchor_on_gps = no_initial_pose && ports.input("gps").is_some();
         let anchor_on_map_fix = no_initial_pose && !anchor_on_gps && ports.input("map_fix").is_some();

@@ -338,7 +338,7 @@ impl OnlineEstimator {
     /// observation's (logged at debug level, "line observation against the estimate")
     /// (diagnostics; one whole-graph factorisation per update that brings registrations or
     /// line observations).
-    pub fn report_registration_sigmas(&mut self, on: bool) {
+    pub fn report_gate_sigmas(&mut self, on: bool) {
         self.report_sigmas = on;
     }
 
@@ -637,6 +637,13 @@ impl OnlineEstimator {
         Ok(())
     }
 
+    /// The whole graph's information [`OnlineEstimator::make_information`] made.
+    fn made_information(&self) -> Result<&WholeGraphInformation> {
+        self.information
+            .as_ref()
+            .ok_or_else(|| Error::LinearSolve("no whole-graph information for the gates".into()))
+    }
+
     /// Whether the line gate drops `factor`, an observation of a line the graph holds: its
     /// residual at the current estimate further than `line_gate_sigmas` standard deviations
     /// of its prediction (the forward distance's marginal variance plus `sigma_m` squared).
@@ -653,11 +660,7 @@ impl OnlineEstimator {
             return Ok(false);
         }
         self.make_information()?;
-        let info = self
-            .information
-            .as_ref()
-            .ok_or_else(|| Error::LinearSolve("no whole-graph information for the line gate".into()))?;
-        let variance = info.variance(factor, &self.values)? + sigma_m * sigma_m;
+        let variance = self.made_information()?.variance(factor, &self.values)? + sigma_m * sigma_m;
         let gated = gate && residual_m.abs() > sigmas * variance.sqrt();
         tracing::debug!(
             line = line_id,
@@ -679,10 +682,7 @@ impl OnlineEstimator {
         residual_m: f64,
         measurement_var: f64,
     ) -> Result<Gain> {
-        let info = self
-            .information
-            .as_ref()
-            .ok_or_else(|| Error::LinearSolve("no whole-graph information for the registration gate".into()))?;
+        let info = self.made_information()?;
         let along = TrackOffset::along(pi, pj, 0.0, NoiseModel::isotropic(1, 1.0)?)?;
         let g = info.gradient(&along, &self.values)?;
         let mut u = info.solve(&g);
@@ -1234,7 +1234,7 @@ mod tests {
                 ..OnlineParams::default()
             };
             let est = drive_circle_params(10, 1.1, params, |est, s| {
-                est.report_registration_sigmas(true);
+                est.report_gate_sigmas(true);
                 if s.index >= 10 * back_s as u64 && s.index % 10 == 0 {
                     let wrong_m = if s.index == 50 { 1.5 } else { 0.0 };
                     let r = truth_registration(s.stamp_ns - back_s * 1_000_000_000, s.stamp_ns, wrong_m);
@@ -1293,7 +1293,7 @@ mod tests {
                 ..OnlineParams::default()
             };
             drive_circle_params(10, 1.0, params, |est, s| {
-                est.report_registration_sigmas(report);
+                est.report_gate_sigmas(report);
                 if s.index == 80 {
                     let offsets = if first { vec![0.0, wrong_m] } else { vec![wrong_m] };
                     for offset in offsets {

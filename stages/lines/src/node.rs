@@ -249,13 +249,14 @@ impl Stage for LinesStage {
     }
 
     fn finish(&mut self, out: &mut Outputs) -> std::result::Result<(), StageError> {
-        let (last, late) = in_stamp_order(self.observer.finish(), out.watermark_ns(self.out));
+        let watermark_ns = out.watermark_ns(self.out);
+        let (last, late) = in_stamp_order(self.observer.finish(), watermark_ns);
         self.send(&last, out)?;
         if let Some(first) = late.first() {
             tracing::warn!(
                 observations = late.len(),
                 stamp_ns = first.stamp_ns,
-                watermark_ns = out.watermark_ns(self.out),
+                watermark_ns,
                 "lines: the drive ended before it left its newest hyperbolas behind; their \
                  observations, measured at the last submap's end, are older than what the \
                  submaps' stream had already promised downstream (the recording goes on after \

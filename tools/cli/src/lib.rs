@@ -34,8 +34,8 @@ use gprflow_viz::VizStage;
 /// the map ahead on a worker thread and tracks on (then drops) those grids, tens of MiB each,
 /// on its own: with a malloc arena per thread and freed memory kept (the CLI's
 /// `keep_freed_memory`), the memory the arenas keep fragmented grew with the route, 321 / 348 /
-/// 451 MiB after 5 / 20 / 57 laps of the highway, against 321 / 323 / 320 MiB in one arena
-/// with the same fixes and CPU time.
+/// 451 MiB peak after 5 / 20 / 57 laps of the highway (`tools/bench/scale.sh lgpr:5 lgpr:20
+/// lgpr:60`), against 315 / 314 / 329 MiB in one arena with the same fixes.
 #[must_use]
 pub fn one_malloc_arena(kind: &str) -> bool {
     kind == <LgprTrackStage as Stage>::NAME
