@@ -7,7 +7,9 @@
 //! feedback input (when connected) places the apexes on the ground instead of the submaps' own
 //! odometry (wheel and gyro dead reckoning, which drifts over a long drive); the estimator's
 //! line map (`lines`) lets an apex join the estimated line whose predicted forward distance
-//! fits the measured one.
+//! fits the measured one. A submap that breaks the validity rule (turning, reversing) ends
+//! the straight drive the forward distances assume: the hyperbolas still waiting to be left
+//! behind are dropped there ([`Observer::break_drive`]), counted in the stage's summary.
 
 use gprflow_geometry::Planar;
 use gprflow_msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
@@ -229,6 +231,7 @@ impl Stage for LinesStage {
         self.counts.submaps += 1;
         if !m.valid && !self.include_invalid {
             self.counts.invalid += 1;
+            self.observer.break_drive();
             return Ok(());
         }
         let image = Image {
@@ -271,6 +274,7 @@ impl Stage for LinesStage {
             hyperbolas = o.hyperbolas(),
             sent,
             late = late.len(),
+            cut_by_turns = o.cut_by_turns(),
             lines = o.line_count(),
             "lines: {} observations of {} lines from {} submaps",
             sent,

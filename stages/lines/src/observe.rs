@@ -202,6 +202,7 @@ struct Pending {
 /// The newest submap's end: where observations are measured from.
 #[derive(Debug, Clone, Copy)]
 struct Newest {
+    id: u32,
     end_ns: i64,
     end_distance_m: f64,
     middle_distance_m: f64,
@@ -221,6 +222,7 @@ pub struct Observer {
     line_map: Vec<(u32, f64, f64)>,
     hyperbolas: u64,
     released: u64,
+    cut_by_turns: u64,
 }
 
 impl Observer {
@@ -240,6 +242,7 @@ impl Observer {
             line_map: Vec::new(),
             hyperbolas: 0,
             released: 0,
+            cut_by_turns: 0,
         })
     }
 
@@ -283,6 +286,11 @@ impl Observer {
     /// Takes the hyperbolas `found` in a submap (those whose apex has reached its middle) and
     /// returns the observations the drive has now left behind.
     pub fn add_hyperbolas(&mut self, span: &SubmapSpan, found: Vec<Hyperbola>) -> Vec<Observation> {
+        // submaps the submap stage made in between and did not send broke the validity rule
+        // (turning, reversing): the straight drive ended there
+        if self.newest.is_some_and(|n| span.id != n.id.wrapping_add(1)) {
+            self.break_drive();
+        }
         self.hyperbolas += found.len() as u64;
         // forget what no longer shares traces with this submap
         while self.sent.front().is_some_and(|s| s.submap_end_ns < span.start_ns) {
@@ -323,6 +331,7 @@ impl Observer {
             }
         }
         self.newest = Some(Newest {
+            id: span.id,
             end_ns: span.end_ns,
             end_distance_m: span.end_distance_m,
             middle_distance_m: span.along_at(0.5),
@@ -333,6 +342,31 @@ impl Observer {
     /// Releases every hyperbola still pending (at the end of the drive).
     pub fn finish(&mut self) -> Vec<Observation> {
         self.release(true)
+    }
+
+    /// The drive stopped being straight (a turning or reversing submap, which is not
+    /// searched, or submaps missing between two: their ids are consecutive): the hyperbolas still pending are dropped ([`Observer::cut_by_turns`]) and
+    /// the next submap starts afresh. Their forward distance would be measured from a submap
+    /// after the turn: the wheel distance along the turn's path, taken along the new heading
+    /// (metres off: one such observation of a row's end turned a 21-minute lawnmower's whole
+    /// map by 0.8 rad). It cannot be measured from the last straight submap either: an
+    /// observation is stamped no earlier than the submap that releases it.
+    pub fn break_drive(&mut self) {
+        if !self.pending.is_empty() {
+            tracing::debug!(
+                hyperbolas = self.pending.len(),
+                "lines: the drive turned before it left these hyperbolas behind; dropped"
+            );
+        }
+        self.cut_by_turns += self.pending.len() as u64;
+        self.pending.clear();
+        self.newest = None;
+    }
+
+    /// Hyperbolas dropped so far because the drive turned before it left them behind
+    /// ([`Observer::break_drive`]).
+    pub fn cut_by_turns(&self) -> u64 {
+        self.cut_by_turns
     }
 
     /// Hyperbolas detected so far.
@@ -603,6 +637,35 @@ mod tests {
         assert!((last[0].along_distance_m - 1.5).abs() < TOL);
         assert_ne!(last[0].line_id, s.line_id, "another depth, another line");
         assert_eq!((o.hyperbolas(), o.released(), o.line_count()), (5, 2, 2));
+    }
+
+    #[test]
+    fn a_turn_drops_what_it_would_measure_across() {
+        let mut o = observer(false);
+        // at 0.9 m, near the middle of the first submap: waits for the drive to leave it
+        assert!(
+            o.add_hyperbolas(&span(1, 0.0), vec![hyperbola(90.0, 20.0, 5.0)])
+                .is_empty()
+        );
+        // the drive turns; a straight submap after the turn would have released it, measured
+        // along the turn
+        o.break_drive();
+        assert!(o.add_hyperbolas(&span(2, 4.0), Vec::new()).is_empty());
+        assert!(o.finish().is_empty());
+        assert_eq!((o.hyperbolas(), o.released(), o.cut_by_turns()), (1, 0, 1));
+        // a hyperbola found after the turn goes out as before, measured from after it
+        o.add_hyperbolas(&span(3, 4.1), vec![hyperbola(90.0, 20.0, 5.0)]);
+        let sent = o.add_hyperbolas(&span(4, 4.6), Vec::new());
+        assert_eq!(sent.len(), 1, "{sent:?}");
+        assert!((sent[0].forward_distance_m - (5.0 + 0.25 - 6.6)).abs() < TOL);
+        assert_eq!((o.released(), o.cut_by_turns()), (1, 1));
+        // the submap stage sends valid submaps only: the turning ones (ids 6-8) never come
+        assert!(
+            o.add_hyperbolas(&span(5, 4.7), vec![hyperbola(90.0, 30.0, 5.0)])
+                .is_empty()
+        );
+        assert!(o.add_hyperbolas(&span(9, 9.0), Vec::new()).is_empty());
+        assert_eq!((o.released(), o.cut_by_turns()), (1, 2));
     }
 
     #[test]
