@@ -718,7 +718,10 @@ impl OnlineEstimator {
     }
 
     /// Adds a line observation from the state nearest `stamp_ns`; `false` when none matches.
-    /// With `line_gate_sigmas`, an observation of a line the graph holds that the estimate
+    /// The forward distance is measured from the body at `stamp_ns`: taken from the newest
+    /// state, stamped up to a state period earlier, it gains the wheel distance driven since
+    /// that state (without it every observation was biased by about half a period's travel,
+    /// 2.5 cm at 0.5 m/s, the pipe placed that much too far back). With `line_gate_sigmas`, an observation of a line the graph holds that the estimate
     /// cannot explain is dropped ([`OnlineEstimator::gated_lines`]; `true`: it matched a
     /// state).
     ///
@@ -738,6 +741,12 @@ impl OnlineEstimator {
         } else {
             0.05
         };
+        // the wheel has been read up to `stamp_ns` (its messages come first at a tie)
+        let driven_m = match (self.wheel_distance_m, self.wheel_at_state) {
+            (Some(now), Some(at_state)) if s + 1 == self.states.len() => now - at_state,
+            _ => 0.0,
+        };
+        let distance_m = distance_m + driven_m;
         let pose = self.states[s].pose;
         let entry = self.lines.entry(line_id).or_default();
         if let Some(var) = entry.var {
@@ -1376,6 +1385,55 @@ mod tests {
         assert_eq!(id, 7);
         assert!(
             (line.rho_m - truth.rho_m).abs() < 0.1 && (line.theta_rad - truth.theta_rad).abs() < 0.02,
+            "{line:?} against {truth:?}"
+        );
+    }
+
+    #[test]
+    fn a_line_observation_between_states_is_measured_from_its_own_stamp() {
+        // The line of the test above, observed half a state period (50 ms, 5 cm at 1 m/s)
+        // after each state, by the forward distance from the body then. Taken as if from the
+        // state before it, every observation is 5 cm short and the line comes out 5 cm off.
+        let truth = HoughLine {
+            rho_m: 6.0,
+            theta_rad: 0.2,
+        };
+        let mut est = OnlineEstimator::new(OnlineParams {
+            smoother: SmootherParams {
+                background: false,
+                ..SmootherParams::default()
+            },
+            first_state: FirstStatePrior {
+                velocity_sigma_mps: 10.0,
+                ..FirstStatePrior::default()
+            },
+            gravity_align_s: 0.0,
+            ..OnlineParams::default()
+        });
+        let (speed, omega, dt_ns) = (1.0, 0.1, 5_000_000i64);
+        let mut observed = 0;
+        for k in 0..=30 * 200 {
+            let t = k as f64 * dt_ns as f64 * 1e-9;
+            est.wheel(speed * t);
+            est.imu(
+                k * dt_ns,
+                Vector3::new(0.0, speed * omega, 9.80665),
+                Vector3::new(0.0, 0.0, omega),
+            )
+            .expect("imu");
+            if k % 20 == 10 {
+                let (h, _, _) = crate::factors::forward_distance_to_line(&circle_truth(t), &truth);
+                if (0.5..4.0).contains(&h) {
+                    assert!(est.line(k * dt_ns, 7, h, 0.05).expect("line"));
+                    observed += 1;
+                }
+            }
+        }
+        est.finish().expect("finish");
+        assert!(observed > 40, "{observed}");
+        let line = est.line_map()[0].1;
+        assert!(
+            (line.rho_m - truth.rho_m).abs() < 0.005 && (line.theta_rad - truth.theta_rad).abs() < 0.001,
             "{line:?} against {truth:?}"
         );
     }
