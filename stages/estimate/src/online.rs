@@ -1067,14 +1067,10 @@ mod tests {
         drive_circle_params(seconds, wheel_scale, params, extra)
     }
 
-    /// [`drive_circle`] with `params`, in line re-solves and a weak velocity prior.
-    fn drive_circle_params(
-        seconds: i64,
-        wheel_scale: f64,
-        params: OnlineParams,
-        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
-    ) -> OnlineEstimator {
-        let params = OnlineParams {
+    /// `params` for a drive that starts moving: in line re-solves, a weak velocity prior, no
+    /// gravity alignment (the first state at t = 0).
+    fn moving_start(params: OnlineParams) -> OnlineParams {
+        OnlineParams {
             smoother: SmootherParams {
                 background: false,
                 ..SmootherParams::default()
@@ -1083,11 +1079,19 @@ mod tests {
                 velocity_sigma_mps: 10.0,
                 ..FirstStatePrior::default()
             },
-            // the circle starts moving: no gravity alignment, the first state at t = 0
             gravity_align_s: 0.0,
             ..params
-        };
-        let mut est = OnlineEstimator::new(params);
+        }
+    }
+
+    /// [`drive_circle`] with `params` ([`moving_start`]).
+    fn drive_circle_params(
+        seconds: i64,
+        wheel_scale: f64,
+        params: OnlineParams,
+        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+    ) -> OnlineEstimator {
+        let mut est = OnlineEstimator::new(moving_start(params));
         // Body x along the velocity, centripetal acceleration along body y; at rest the
         // accelerometer reads +g up. The run starts moving: a weak velocity prior, the wheel
         // fixes the speed.
@@ -1398,18 +1402,7 @@ mod tests {
             rho_m: 6.0,
             theta_rad: 0.2,
         };
-        let mut est = OnlineEstimator::new(OnlineParams {
-            smoother: SmootherParams {
-                background: false,
-                ..SmootherParams::default()
-            },
-            first_state: FirstStatePrior {
-                velocity_sigma_mps: 10.0,
-                ..FirstStatePrior::default()
-            },
-            gravity_align_s: 0.0,
-            ..OnlineParams::default()
-        });
+        let mut est = OnlineEstimator::new(moving_start(OnlineParams::default()));
         let (speed, omega, dt_ns) = (1.0, 0.1, 5_000_000i64);
         let mut observed = 0;
         for k in 0..=30 * 200 {
