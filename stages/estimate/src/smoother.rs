@@ -301,6 +301,17 @@ impl FixedLagSmoother {
         self.states.len().saturating_sub(self.params.lag_states.max(1))
     }
 
+    /// Whether a factor already on `landmark` (a variable of no state) reaches a state behind
+    /// `start`.
+    fn landmark_seen_behind(&self, graph: &FactorGraph, landmark: VarId, start: usize) -> bool {
+        self.factors_of[landmark.0].iter().any(|&fi| {
+            graph.factors()[fi]
+                .keys()
+                .iter()
+                .any(|k| self.state_of[k.0].is_some_and(|s| s < start))
+        })
+    }
+
     fn register(&mut self, graph: &FactorGraph, values: &Values, new_state: &[VarId]) -> Result<()> {
         self.state_of.resize(values.len(), None);
         self.factors_of.resize(values.len(), Vec::new());
@@ -314,11 +325,15 @@ impl FixedLagSmoother {
         let start = self.window_start();
         for fi in self.known_factors..graph.len() {
             for k in graph.factors()[fi].keys() {
+                let behind = match self.state_of[k.0] {
+                    Some(s) => s < start,
+                    // a landmark (a line): seen again, it closes a loop when it was seen
+                    // from a state behind the window
+                    None => self.landmark_seen_behind(graph, *k, start),
+                };
+                self.full_solve_wanted |= behind;
                 let list = self.factors_of.get_mut(k.0).ok_or(Error::UnknownVariable(k.0))?;
                 list.push(fi);
-                if self.state_of[k.0].is_some_and(|s| s < start) {
-                    self.full_solve_wanted = true;
-                }
             }
         }
         self.known_factors = graph.len();
@@ -928,6 +943,56 @@ mod tests {
             };
             assert!(a.local(b).norm() < 1e-5, "{a:?} vs {b:?}");
         }
+    }
+
+    #[test]
+    fn a_landmark_seen_again_from_the_window_is_a_loop_closure() {
+        use crate::factors::{BetweenPose, LineDistance, PosePrior};
+        use crate::lie::Pose3;
+        use crate::values::HoughLine;
+        // A pose chain along x (window of 4 states) and the wall x = 30, observed ahead from
+        // the states `seen`: returns the states whose update started a re-solve.
+        let run = |seen: &[usize]| {
+            let mut smoother = FixedLagSmoother::new(SmootherParams {
+                method: SmootherMethod::FixedLag,
+                lag_states: 4,
+                background: false,
+                ..SmootherParams::default()
+            });
+            let (mut graph, mut values) = (FactorGraph::new(), Values::new());
+            let noise = NoiseModel::isotropic(6, 0.05).expect("noise");
+            let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.0, 1.0, 0.0, 0.0));
+            let wall = values.push(Variable::Line(HoughLine {
+                rho_m: 30.0,
+                theta_rad: 0.0,
+            }));
+            let (mut prev, mut started) = (None::<VarId>, Vec::new());
+            for k in 0..12 {
+                let pose = (0..k).fold(Pose3::identity(), |acc, _| acc.compose(&step));
+                let id = values.push(Variable::Pose(pose));
+                match prev {
+                    None => graph.add(PosePrior::new(id, Pose3::identity(), noise.clone()).expect("f")),
+                    Some(p) => graph.add(BetweenPose::new(p, id, step, noise.clone()).expect("f")),
+                };
+                if seen.contains(&k) {
+                    let along = NoiseModel::isotropic(1, 0.05).expect("noise");
+                    graph.add(LineDistance::new(id, wall, 30.0 - k as f64, along).expect("f"));
+                }
+                prev = Some(id);
+                if smoother
+                    .update(&graph, &mut values, &[id])
+                    .expect("update")
+                    .started_full_solve
+                {
+                    started.push(k);
+                }
+            }
+            started
+        };
+        // seen from state 1, again from state 10 (state 1 is then 9 states back)
+        assert_eq!(run(&[1, 10]), vec![10]);
+        // seen from states 8 and 10 only: both in the window at state 10
+        assert!(run(&[8, 10]).is_empty());
     }
 
     #[test]
