@@ -721,8 +721,8 @@ impl OnlineEstimator {
     /// The forward distance is measured from the body at `stamp_ns`: taken from the newest
     /// state, stamped up to a state period earlier, it gains the wheel distance driven since
     /// that state (without it every observation was biased by about half a period's travel,
-    /// 2.5 cm at 0.5 m/s, the pipe placed that much too far back). With `line_gate_sigmas`, an observation of a line the graph holds that the estimate
-    /// cannot explain is dropped ([`OnlineEstimator::gated_lines`]; `true`: it matched a
+    /// 2.5 cm at 0.5 m/s, the pipe placed that much too far back). With `line_gate_sigmas`, an
+    /// observation of a line the graph holds that the estimate cannot explain is dropped ([`OnlineEstimator::gated_lines`]; `true`: it matched a
     /// state).
     ///
     /// # Errors
