@@ -722,8 +722,8 @@ impl OnlineEstimator {
     /// state, stamped up to a state period earlier, it gains the wheel distance driven since
     /// that state (without it every observation was biased by about half a period's travel,
     /// 2.5 cm at 0.5 m/s, the pipe placed that much too far back). With `line_gate_sigmas`, an
-    /// observation of a line the graph holds that the estimate cannot explain is dropped ([`OnlineEstimator::gated_lines`]; `true`: it matched a
-    /// state).
+    /// observation of a line the graph holds that the estimate cannot explain is dropped
+    /// ([`OnlineEstimator::gated_lines`]; `true`: it matched a state).
     ///
     /// # Errors
     /// A bad sigma.
@@ -1067,10 +1067,29 @@ mod tests {
         drive_circle_params(seconds, wheel_scale, params, extra)
     }
 
-    /// `params` for a drive that starts moving: in line re-solves, a weak velocity prior, no
-    /// gravity alignment (the first state at t = 0).
-    fn moving_start(params: OnlineParams) -> OnlineParams {
-        OnlineParams {
+    /// [`drive_circle`] with `params`, in line re-solves and a weak velocity prior.
+    fn drive_circle_params(
+        seconds: i64,
+        wheel_scale: f64,
+        params: OnlineParams,
+        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
+    ) -> OnlineEstimator {
+        drive_circle_samples(seconds, wheel_scale, params, |est, _, state| {
+            if let Some(s) = state {
+                extra(est, s);
+            }
+        })
+    }
+
+    /// [`drive_circle_params`] calling `each` after every IMU sample, with its stamp and the
+    /// state it made.
+    fn drive_circle_samples(
+        seconds: i64,
+        wheel_scale: f64,
+        params: OnlineParams,
+        mut each: impl FnMut(&mut OnlineEstimator, i64, Option<&StateOutput>),
+    ) -> OnlineEstimator {
+        let params = OnlineParams {
             smoother: SmootherParams {
                 background: false,
                 ..SmootherParams::default()
@@ -1079,19 +1098,11 @@ mod tests {
                 velocity_sigma_mps: 10.0,
                 ..FirstStatePrior::default()
             },
+            // the circle starts moving: no gravity alignment, the first state at t = 0
             gravity_align_s: 0.0,
             ..params
-        }
-    }
-
-    /// [`drive_circle`] with `params` ([`moving_start`]).
-    fn drive_circle_params(
-        seconds: i64,
-        wheel_scale: f64,
-        params: OnlineParams,
-        mut extra: impl FnMut(&mut OnlineEstimator, &StateOutput),
-    ) -> OnlineEstimator {
-        let mut est = OnlineEstimator::new(moving_start(params));
+        };
+        let mut est = OnlineEstimator::new(params);
         // Body x along the velocity, centripetal acceleration along body y; at rest the
         // accelerometer reads +g up. The run starts moving: a weak velocity prior, the wheel
         // fixes the speed.
@@ -1107,9 +1118,7 @@ mod tests {
                     Vector3::new(0.0, 0.0, omega),
                 )
                 .expect("imu");
-            if let Some(s) = s {
-                extra(&mut est, &s);
-            }
+            each(&mut est, k * dt_ns, s.as_ref());
         }
         est.finish().expect("finish");
         est
@@ -1402,27 +1411,16 @@ mod tests {
             rho_m: 6.0,
             theta_rad: 0.2,
         };
-        let mut est = OnlineEstimator::new(moving_start(OnlineParams::default()));
-        let (speed, omega, dt_ns) = (1.0, 0.1, 5_000_000i64);
         let mut observed = 0;
-        for k in 0..=30 * 200 {
-            let t = k as f64 * dt_ns as f64 * 1e-9;
-            est.wheel(speed * t);
-            est.imu(
-                k * dt_ns,
-                Vector3::new(0.0, speed * omega, 9.80665),
-                Vector3::new(0.0, 0.0, omega),
-            )
-            .expect("imu");
-            if k % 20 == 10 {
-                let (h, _, _) = crate::factors::forward_distance_to_line(&circle_truth(t), &truth);
+        let est = drive_circle_samples(30, 1.0, OnlineParams::default(), |est, stamp_ns, _| {
+            if stamp_ns % 100_000_000 == 50_000_000 {
+                let (h, _, _) = crate::factors::forward_distance_to_line(&circle_truth(stamp_ns as f64 * 1e-9), &truth);
                 if (0.5..4.0).contains(&h) {
-                    assert!(est.line(k * dt_ns, 7, h, 0.05).expect("line"));
+                    assert!(est.line(stamp_ns, 7, h, 0.05).expect("line"));
                     observed += 1;
                 }
             }
-        }
-        est.finish().expect("finish");
+        });
         assert!(observed > 40, "{observed}");
         let line = est.line_map()[0].1;
         assert!(

@@ -812,6 +812,16 @@ mod tests {
         out
     }
 
+    /// The fixed-lag smoother with a window of 4 states, re-solving in line.
+    fn four_state_window() -> SmootherParams {
+        SmootherParams {
+            method: SmootherMethod::FixedLag,
+            lag_states: 4,
+            background: false,
+            ..SmootherParams::default()
+        }
+    }
+
     #[test]
     fn a_window_with_a_free_direction_still_gives_the_pose_covariance() {
         use crate::factors::{BetweenPose, PosePrior, TrackOffset};
@@ -820,12 +830,7 @@ mod tests {
         // no state and that nothing else constrains: five of its six directions are free, so the
         // window has no Cholesky factor undamped.
         let newest_cov = |other: bool| {
-            let mut smoother = FixedLagSmoother::new(SmootherParams {
-                method: SmootherMethod::FixedLag,
-                lag_states: 4,
-                background: false,
-                ..SmootherParams::default()
-            });
+            let mut smoother = FixedLagSmoother::new(four_state_window());
             let (mut graph, mut values) = (FactorGraph::new(), Values::new());
             let odo = NoiseModel::isotropic(6, 0.05).expect("noise");
             let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.05, 1.0, 0.0, 0.0));
@@ -873,14 +878,11 @@ mod tests {
         use crate::factors::{BetweenPose, PosePrior};
         use crate::lie::Pose3;
         let mut smoother = FixedLagSmoother::new(SmootherParams {
-            method: SmootherMethod::FixedLag,
-            lag_states: 4,
-            background: false,
             resolve_spacing_states: spacing,
             resolve_window_states: resolve_window,
             resolve_spacing_growth: growth,
             resolve_wide_states: wide,
-            ..SmootherParams::default()
+            ..four_state_window()
         });
         let (mut graph, mut values) = (FactorGraph::new(), Values::new());
         let noise = NoiseModel::isotropic(6, 0.05).expect("noise");
@@ -953,12 +955,7 @@ mod tests {
         // A pose chain along x (window of 4 states) and the wall x = 30, observed ahead from
         // the states `seen`: returns the states whose update started a re-solve.
         let run = |seen: &[usize]| {
-            let mut smoother = FixedLagSmoother::new(SmootherParams {
-                method: SmootherMethod::FixedLag,
-                lag_states: 4,
-                background: false,
-                ..SmootherParams::default()
-            });
+            let mut smoother = FixedLagSmoother::new(four_state_window());
             let (mut graph, mut values) = (FactorGraph::new(), Values::new());
             let noise = NoiseModel::isotropic(6, 0.05).expect("noise");
             let step = Pose3::exp(&Vector6::new(0.0, 0.0, 0.0, 1.0, 0.0, 0.0));

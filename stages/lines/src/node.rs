@@ -7,9 +7,10 @@
 //! feedback input (when connected) places the apexes on the ground instead of the submaps' own
 //! odometry (wheel and gyro dead reckoning, which drifts over a long drive); the estimator's
 //! line map (`lines`) lets an apex join the estimated line whose predicted forward distance
-//! fits the measured one. A submap that breaks the validity rule (turning, reversing) ends
-//! the straight drive the forward distances assume: the hyperbolas still waiting to be left
-//! behind are dropped there ([`Observer::break_drive`]), counted in the stage's summary.
+//! fits the measured one. Submaps that break the validity rule (turning, reversing; not sent,
+//! or not searched) end the straight drive the forward distances assume: at the next searched
+//! submap, whose id does not follow the last one's, the hyperbolas still waiting to be left
+//! behind are dropped, counted in the stage's summary (`cut_by_turns`).
 
 use gprflow_geometry::Planar;
 use gprflow_msg::{Header, LineMap, LineObservation, Message, StateEstimate, Submap, Time};
@@ -231,7 +232,6 @@ impl Stage for LinesStage {
         self.counts.submaps += 1;
         if !m.valid && !self.include_invalid {
             self.counts.invalid += 1;
-            self.observer.break_drive();
             return Ok(());
         }
         let image = Image {

@@ -286,8 +286,7 @@ impl Observer {
     /// Takes the hyperbolas `found` in a submap (those whose apex has reached its middle) and
     /// returns the observations the drive has now left behind.
     pub fn add_hyperbolas(&mut self, span: &SubmapSpan, found: Vec<Hyperbola>) -> Vec<Observation> {
-        // submaps the submap stage made in between and did not send broke the validity rule
-        // (turning, reversing): the straight drive ended there
+        // submaps made in between were not searched: the straight drive ended there
         if self.newest.is_some_and(|n| span.id != n.id.wrapping_add(1)) {
             self.break_drive();
         }
@@ -344,14 +343,15 @@ impl Observer {
         self.release(true)
     }
 
-    /// The drive stopped being straight (a turning or reversing submap, which is not
-    /// searched, or submaps missing between two: their ids are consecutive): the hyperbolas still pending are dropped ([`Observer::cut_by_turns`]) and
-    /// the next submap starts afresh. Their forward distance would be measured from a submap
+    /// The drive stopped being straight: submaps the submap stage made were not searched here
+    /// (turning or reversing ones, not sent or not valid), so this submap's id does not follow
+    /// the newest's. The hyperbolas still pending are dropped ([`Observer::cut_by_turns`]) and
+    /// this submap starts afresh. Their forward distance would be measured from a submap
     /// after the turn: the wheel distance along the turn's path, taken along the new heading
     /// (metres off: one such observation of a row's end turned a 21-minute lawnmower's whole
     /// map by 0.8 rad). It cannot be measured from the last straight submap either: an
     /// observation is stamped no earlier than the submap that releases it.
-    pub fn break_drive(&mut self) {
+    fn break_drive(&mut self) {
         if !self.pending.is_empty() {
             tracing::debug!(
                 hyperbolas = self.pending.len(),
@@ -363,8 +363,8 @@ impl Observer {
         self.newest = None;
     }
 
-    /// Hyperbolas dropped so far because the drive turned before it left them behind
-    /// ([`Observer::break_drive`]).
+    /// Hyperbolas dropped so far because the drive turned before it left them behind: the
+    /// next submap searched did not follow the one before (its id skips those made between).
     pub fn cut_by_turns(&self) -> u64 {
         self.cut_by_turns
     }
@@ -647,24 +647,23 @@ mod tests {
             o.add_hyperbolas(&span(1, 0.0), vec![hyperbola(90.0, 20.0, 5.0)])
                 .is_empty()
         );
-        // the drive turns; a straight submap after the turn would have released it, measured
-        // along the turn
-        o.break_drive();
-        assert!(o.add_hyperbolas(&span(2, 4.0), Vec::new()).is_empty());
+        // the drive turns (submap 2, turning, is not searched); the straight submap after the
+        // turn would have released it, measured along the turn
+        assert!(o.add_hyperbolas(&span(3, 4.0), Vec::new()).is_empty());
         assert!(o.finish().is_empty());
         assert_eq!((o.hyperbolas(), o.released(), o.cut_by_turns()), (1, 0, 1));
         // a hyperbola found after the turn goes out as before, measured from after it
-        o.add_hyperbolas(&span(3, 4.1), vec![hyperbola(90.0, 20.0, 5.0)]);
-        let sent = o.add_hyperbolas(&span(4, 4.6), Vec::new());
+        o.add_hyperbolas(&span(4, 4.1), vec![hyperbola(90.0, 20.0, 5.0)]);
+        let sent = o.add_hyperbolas(&span(5, 4.6), Vec::new());
         assert_eq!(sent.len(), 1, "{sent:?}");
         assert!((sent[0].forward_distance_m - (5.0 + 0.25 - 6.6)).abs() < TOL);
         assert_eq!((o.released(), o.cut_by_turns()), (1, 1));
-        // the submap stage sends valid submaps only: the turning ones (ids 6-8) never come
+        // three turning submaps (ids 7-9) in between
         assert!(
-            o.add_hyperbolas(&span(5, 4.7), vec![hyperbola(90.0, 30.0, 5.0)])
+            o.add_hyperbolas(&span(6, 4.7), vec![hyperbola(90.0, 30.0, 5.0)])
                 .is_empty()
         );
-        assert!(o.add_hyperbolas(&span(9, 9.0), Vec::new()).is_empty());
+        assert!(o.add_hyperbolas(&span(10, 9.0), Vec::new()).is_empty());
         assert_eq!((o.released(), o.cut_by_turns()), (1, 2));
     }
 
