@@ -414,7 +414,7 @@ impl Factor for CombinedImuFactor {
             let d_bias_i = jinv * eta_bias;
 
             for m in jac.iter_mut() {
-                m.fill(0.0);
+                m.as_mut_slice().fill(0.0);
             }
             // pose_i: columns [rot, trans] = state-i columns 0..6.
             jac[0]

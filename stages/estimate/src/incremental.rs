@@ -47,7 +47,7 @@ use nalgebra::{DMatrix, DVector};
 use crate::batch::{LmParams, LmReport, levenberg_marquardt};
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
-use crate::linear::Ordering;
+use crate::linear::{Information, Ordering};
 use crate::values::{Values, VarId, Variable};
 use crate::{Error, Result};
 
@@ -463,7 +463,7 @@ impl IncrementalSmoother {
             c0 += j.ncols();
         }
         let (mut h, mut g) = (DMatrix::zeros(cols, cols), DVector::zeros(cols));
-        crate::linear::whitened_gram(noise, &mut a, &r, &mut Vec::new(), &mut h, &mut g);
+        crate::linear::whitened_gram(noise, &a, &r, &mut Information::default(), &mut h, &mut g);
         Ok(Hessian { keys, h, g })
     }
 

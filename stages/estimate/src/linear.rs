@@ -341,6 +341,16 @@ impl HessianStructure {
         }
     }
 
+    /// Offset, inside each column of variable `pb` (elimination position), of the rows of
+    /// variable `pa`.
+    fn segment(&self, pa: usize, pb: usize) -> Result<usize> {
+        let segments = &self.segments[pb];
+        segments
+            .binary_search_by_key(&pa, |(a, _)| *a)
+            .map(|i| segments[i].1)
+            .map_err(|_| Error::LinearSolve("factor outside the Hessian structure".into()))
+    }
+
     /// The free variables in the order of the linear system.
     #[must_use]
     pub fn ordering(&self) -> &Ordering {
@@ -431,14 +441,10 @@ pub fn linearize_into(
     }
     let (hessian, gradient) = (&mut ne.hessian, &mut ne.gradient);
     let mut error = 0.0;
-    // Scratch reused across factors: per-key Jacobians, the free keys' Jacobians side by
-    // side, J^T J and J^T r.
+    // Scratch reused across factors: per-key Jacobians and the factor's information.
     let mut jac: Vec<DMatrix<f64>> = Vec::new();
-    let mut jall = DMatrix::zeros(0, 0);
-    let mut jtj = DMatrix::zeros(0, 0);
-    let mut g = DVector::zeros(0);
-    let mut jt = Vec::new();
-    // Per free key: (key index, position, column in `jall`, offset, dim).
+    let mut info = Information::default();
+    // Per free key, in elimination order: (key index, position, offset, dim, column in `info`).
     let mut free: Vec<(usize, usize, usize, usize, usize)> = Vec::new();
     for &fi in factors {
         let f: &dyn Factor = graph.factors()[fi].as_ref();
@@ -453,47 +459,59 @@ pub fn linearize_into(
             if j.shape() != (m, d) {
                 *j = DMatrix::zeros(m, d);
             } else {
-                j.fill(0.0);
+                j.as_mut_slice().fill(0.0);
             }
         }
         let r = f.evaluate(values, Some(&mut jac[..keys.len()]))?;
         let loss = |norm: f64| noise.kernel().map_or(0.5 * norm * norm, |k| k.loss(norm));
         free.clear();
-        let mut cols = 0;
         for (k, key) in keys.iter().enumerate() {
             if let (Some(p), Some((off, dim))) = (ordering.position(*key), ordering.slot(*key)) {
-                free.push((k, p, cols, off, dim));
-                cols += dim;
+                free.push((k, p, off, dim, 0));
             }
         }
         if free.is_empty() {
             error += loss(noise.whiten(&r).norm());
             continue;
         }
-        if jall.shape() != (m, cols) {
-            jall = DMatrix::zeros(m, cols);
+        // Columns in elimination order: a block below the diagonal of the Hessian is then
+        // below the diagonal of the factor's `J^T J`.
+        free.sort_unstable_by_key(|e| e.1);
+        let mut cols = 0;
+        for e in &mut free {
+            e.4 = cols;
+            cols += e.3;
         }
-        for &(k, _, c0, _, d) in &free {
-            jall.columns_mut(c0, d).copy_from(&jac[k]);
+        info.begin(m, cols);
+        for &(k, _, _, _, c0) in &free {
+            info.set_block(c0, &jac[k]);
         }
-        error += loss(whitened_gram(noise, &mut jall, &r, &mut jt, &mut jtj, &mut g));
-        for &(_, pa, ca, off_a, da) in &free {
-            for (gi, gv) in gradient.rows_mut(off_a, da).iter_mut().zip(g.rows(ca, da).iter()) {
+        error += loss(info.make(noise, &r));
+        let g = info.gradient();
+        for (b, &(_, pb, off_b, db, cb)) in free.iter().enumerate() {
+            for (gi, gv) in gradient.as_mut_slice()[off_b..off_b + db]
+                .iter_mut()
+                .zip(&g[cb..cb + db])
+            {
                 *gi += gv;
             }
-            for &(_, pb, cb, off_b, db) in &free {
-                if pa < pb {
-                    continue;
+            // The diagonal block, whole (the structure stores it so).
+            let seg = structure.segment(pb, pb)?;
+            for c in 0..db {
+                let base = structure.col_ptr[off_b + c] + seg;
+                for (i, h) in hessian[base..base + db].iter_mut().enumerate() {
+                    *h += info.at(cb + i, cb + c);
                 }
-                let seg = structure.segments[pb]
-                    .iter()
-                    .find(|(a, _)| *a == pa)
-                    .map(|(_, seg)| *seg)
-                    .ok_or(Error::LinearSolve("factor outside the Hessian structure".into()))?;
+            }
+            // The blocks below it, on variables later in elimination order.
+            for &(_, pa, _, da, ca) in &free[b + 1..] {
+                let seg = structure.segment(pa, pb)?;
                 for c in 0..db {
                     let base = structure.col_ptr[off_b + c] + seg;
-                    let src = &jtj.as_slice()[(cb + c) * cols + ca..(cb + c) * cols + ca + da];
-                    for (h, v) in hessian[base..base + da].iter_mut().zip(src) {
+                    for (h, v) in hessian[base..base + da]
+                        .iter_mut()
+                        .zip(info.column_from(ca, cb + c, da))
+                    {
                         *h += v;
                     }
                 }
@@ -504,102 +522,188 @@ pub fn linearize_into(
     Ok(())
 }
 
-/// One factor's information: its Jacobian `a` (the free keys' columns side by side) whitened
-/// and robust-reweighted in place, then `J^T J` and `J^T r` of it and the residual `r` into `h`
-/// and `g` (resized to fit). Returns the norm of the whitened residual before reweighting (the
-/// argument of the factor's loss).
-pub(crate) fn whitened_gram(
-    noise: &NoiseModel,
-    a: &mut DMatrix<f64>,
-    r: &DVector<f64>,
-    jt: &mut Vec<f64>,
-    h: &mut DMatrix<f64>,
-    g: &mut DVector<f64>,
-) -> f64 {
-    noise.whiten_jacobian(a);
-    let mut rw = noise.whiten(r);
-    let norm = rw.norm();
-    let s = noise.robust_scale(&rw);
-    if s != 1.0 {
-        *a *= s;
-        rw *= s;
-    }
-    let n = a.ncols();
-    if h.shape() != (n, n) {
-        *h = DMatrix::zeros(n, n);
-        *g = DVector::zeros(n);
-    }
-    gram(a, &rw, jt, h, g);
-    norm
+/// One factor's information `J^T J` and `J^T r`, made from its whitened, robust-reweighted
+/// Jacobian, with the buffers to make the next one.
+///
+/// The Jacobian is held by rows, each padded with zeros to a multiple of 4 columns: whitening
+/// then adds whole rows, and each 4x4 tile of `J^T J` is a sum over the rows of outer products
+/// of two 4-vectors kept in 16 accumulators (which vectorise, where dot products of columns
+/// form one long dependency chain per entry). Only the tiles on and below the diagonal are
+/// made: callers read the lower triangle ([`Information::at`] mirrors the rest).
+#[derive(Debug, Default)]
+pub(crate) struct Information {
+    /// Rows of the unwhitened Jacobian, `width` long.
+    raw: Vec<f64>,
+    /// Rows of the whitened, reweighted one.
+    rows: Vec<f64>,
+    /// `J^T J`, `width x width` column-major, its lower tiles.
+    h: Vec<f64>,
+    /// `J^T r`, `width` long.
+    g: Vec<f64>,
+    m: usize,
+    n: usize,
+    width: usize,
 }
 
-/// `J^T J` (full, symmetric) and `J^T r` of an `m x n` Jacobian; with AVX2 where the CPU
-/// has it (the same operations in the same order, so the same numbers either way).
-pub(crate) fn gram(
-    j: &DMatrix<f64>,
-    r: &DVector<f64>,
-    jt: &mut Vec<f64>,
-    jtj: &mut DMatrix<f64>,
-    g: &mut DVector<f64>,
-) {
+impl Information {
+    /// Starts a factor of `m` residuals over `n` columns (zeroed).
+    pub(crate) fn begin(&mut self, m: usize, n: usize) {
+        self.m = m;
+        self.n = n;
+        self.width = n.div_ceil(4) * 4;
+        self.raw.clear();
+        self.raw.resize(m * self.width, 0.0);
+        self.rows.resize(m * self.width, 0.0);
+        self.h.resize(self.width * self.width, 0.0);
+        self.g.resize(self.width, 0.0);
+    }
+
+    /// Places the `m x d` Jacobian block `j` at columns `c0..c0 + d`.
+    pub(crate) fn set_block(&mut self, c0: usize, j: &DMatrix<f64>) {
+        let (m, w) = (self.m, self.width);
+        for (c, col) in j.as_slice().chunks_exact(m.max(1)).enumerate() {
+            for (k, v) in col.iter().enumerate() {
+                self.raw[k * w + c0 + c] = *v;
+            }
+        }
+    }
+
+    /// Whitens the Jacobian and the residual `r` with `noise`, reweights both by its robust
+    /// kernel, and makes `J^T J` and `J^T r` of them. Returns the norm of the whitened
+    /// residual before reweighting (the argument of the factor's loss).
+    pub(crate) fn make(&mut self, noise: &NoiseModel, r: &DVector<f64>) -> f64 {
+        let w = self.width;
+        noise.whiten_rows(&self.raw, w, &mut self.rows);
+        let mut rw = noise.whiten(r);
+        let norm = rw.norm();
+        let s = noise.robust_scale(&rw);
+        if s != 1.0 {
+            for x in &mut self.rows {
+                *x *= s;
+            }
+            rw *= s;
+        }
+        self.g.fill(0.0);
+        for (row, rk) in self.rows.chunks_exact(w).zip(rw.iter()) {
+            for (gc, v) in self.g.iter_mut().zip(row) {
+                *gc += rk * v;
+            }
+        }
+        lower_gram(&self.rows, w, &mut self.h);
+        norm
+    }
+
+    /// Entry `(i, j)` of `J^T J`.
+    #[inline]
+    pub(crate) fn at(&self, i: usize, j: usize) -> f64 {
+        let (i, j) = if i / 4 >= j / 4 { (i, j) } else { (j, i) };
+        self.h[j * self.width + i]
+    }
+
+    /// `J^T J`'s column `j` from row `i` (`i >= j`'s tile), `len` entries.
+    #[inline]
+    pub(crate) fn column_from(&self, i: usize, j: usize, len: usize) -> &[f64] {
+        debug_assert!(i / 4 >= j / 4);
+        &self.h[j * self.width + i..][..len]
+    }
+
+    /// `J^T r`.
+    pub(crate) fn gradient(&self) -> &[f64] {
+        &self.g[..self.n]
+    }
+
+    /// The full symmetric `J^T J` and `J^T r` into `h` and `g` (resized to fit).
+    pub(crate) fn to_dense(&self, h: &mut DMatrix<f64>, g: &mut DVector<f64>) {
+        let n = self.n;
+        if h.shape() != (n, n) {
+            *h = DMatrix::zeros(n, n);
+        }
+        for j in 0..n {
+            for i in 0..n {
+                h[(i, j)] = self.at(i, j);
+            }
+        }
+        *g = DVector::from_column_slice(self.gradient());
+    }
+}
+
+/// The tiles on and below the diagonal of `J^T J` (`width x width`, column-major) for the rows
+/// `rows` of `J`, each `width` long; with AVX2 where the CPU has it (the same operations in the
+/// same order, so the same numbers either way).
+fn lower_gram(rows: &[f64], width: usize, h: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2, checked just above.
-        unsafe { gram_avx2(j, r, jt, jtj, g) };
+        unsafe { lower_gram_avx2(rows, width, h) };
         return;
     }
-    gram_portable(j, r, jt, jtj, g);
+    lower_gram_portable(rows, width, h);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn gram_avx2(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mut DMatrix<f64>, g: &mut DVector<f64>) {
-    gram_portable(j, r, jt, jtj, g);
+fn lower_gram_avx2(rows: &[f64], width: usize, h: &mut [f64]) {
+    use std::arch::x86_64::{
+        _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd,
+    };
+    for jb in (0..width).step_by(4) {
+        for ib in (jb..width).step_by(4) {
+            let mut acc = [_mm256_setzero_pd(); 4];
+            for row in rows.chunks_exact(width) {
+                let a = &row[ib..ib + 4];
+                // SAFETY: `a` is 4 long.
+                let a = unsafe { _mm256_loadu_pd(a.as_ptr()) };
+                for (acc_j, b) in acc.iter_mut().zip(&row[jb..jb + 4]) {
+                    *acc_j = _mm256_add_pd(*acc_j, _mm256_mul_pd(a, _mm256_set1_pd(*b)));
+                }
+            }
+            for (j, acc_j) in acc.iter().enumerate() {
+                let out = &mut h[(jb + j) * width + ib..][..4];
+                // SAFETY: `out` is 4 long.
+                unsafe { _mm256_storeu_pd(out.as_mut_ptr(), *acc_j) };
+            }
+        }
+    }
 }
 
-/// Rows of `J` are copied into `jt`, padded with zeros to a multiple of 4 columns; each 4x4
-/// block of the upper triangle of `J^T J` is then a sum over the rows of outer products of two
-/// 4-vectors, kept in 16 accumulators (which vectorise, where dot products of columns form one
-/// long dependency chain per entry).
-#[inline(always)]
-fn gram_portable(j: &DMatrix<f64>, r: &DVector<f64>, jt: &mut Vec<f64>, jtj: &mut DMatrix<f64>, g: &mut DVector<f64>) {
-    let (m, n) = j.shape();
-    let w = n.div_ceil(4) * 4;
-    let js = j.as_slice();
-    jt.clear();
-    jt.resize(m * w, 0.0);
-    for c in 0..n {
-        for k in 0..m {
-            jt[k * w + c] = js[c * m + k];
-        }
-    }
-    g.fill(0.0);
-    for (k, row) in jt.chunks_exact(w).enumerate() {
-        for (gc, v) in g.iter_mut().zip(row) {
-            *gc += r[k] * v;
-        }
-    }
-    let h = jtj.as_mut_slice();
-    for cb in (0..w).step_by(4) {
-        for db in (cb..w).step_by(4) {
+/// [`lower_gram`]: tile `(ib, jb)` holds `sum over rows of a b^T` with `a` the row's entries
+/// `ib..ib + 4` and `b` those at `jb..jb + 4`, added row by row.
+fn lower_gram_portable(rows: &[f64], width: usize, h: &mut [f64]) {
+    for jb in (0..width).step_by(4) {
+        for ib in (jb..width).step_by(4) {
             let mut acc = [[0.0f64; 4]; 4];
-            for row in jt.chunks_exact(w) {
-                let (a, b) = (&row[cb..cb + 4], &row[db..db + 4]);
-                for (acc_i, ai) in acc.iter_mut().zip(a) {
-                    for (x, bj) in acc_i.iter_mut().zip(b) {
-                        *x += ai * bj;
+            for row in rows.chunks_exact(width) {
+                let a = &row[ib..ib + 4];
+                for (acc_j, b) in acc.iter_mut().zip(&row[jb..jb + 4]) {
+                    for (x, ai) in acc_j.iter_mut().zip(a) {
+                        *x += ai * b;
                     }
                 }
             }
-            for (i, acc_i) in acc.iter().enumerate().take(n.saturating_sub(cb)) {
-                for (jj, x) in acc_i.iter().enumerate().take(n.saturating_sub(db)) {
-                    let (c, d) = (cb + i, db + jj);
-                    h[d * n + c] = *x;
-                    h[c * n + d] = *x;
-                }
+            for (j, acc_j) in acc.iter().enumerate() {
+                h[(jb + j) * width + ib..][..4].copy_from_slice(acc_j);
             }
         }
     }
+}
+
+/// One factor's information: `J^T J` and `J^T r` of its Jacobian `a` (the free keys' columns
+/// side by side) and residual `r`, whitened and robust-reweighted, into `h` and `g` (resized
+/// to fit). Returns the norm of the whitened residual before reweighting (the argument of the
+/// factor's loss).
+pub(crate) fn whitened_gram(
+    noise: &NoiseModel,
+    a: &DMatrix<f64>,
+    r: &DVector<f64>,
+    info: &mut Information,
+    h: &mut DMatrix<f64>,
+    g: &mut DVector<f64>,
+) -> f64 {
+    info.begin(a.nrows(), a.ncols());
+    info.set_block(0, a);
+    let norm = info.make(noise, r);
+    info.to_dense(h, g);
+    norm
 }
 
 /// Damping, relative to the largest diagonal entry, of a Hessian with a direction no factor
@@ -756,23 +860,51 @@ mod tests {
     use nalgebra::Vector6;
 
     #[test]
-    fn gram_is_jt_j_and_jt_r_for_any_shape() {
-        // Widths that are and are not multiples of the 4-column blocks, and a single row.
+    fn information_is_jt_j_and_jt_r_for_any_shape() {
+        // Widths that are and are not multiples of the 4-column tiles, and a single row; a
+        // full and a diagonal noise model.
         for (m, n) in [(15, 30), (7, 13), (6, 12), (1, 5), (3, 4)] {
             let j = DMatrix::from_fn(m, n, |r, c| ((r * 31 + c * 17) % 11) as f64 - 5.0 + 0.25 * c as f64);
             let r = DVector::from_fn(m, |k, _| 1.5 - k as f64);
-            let (mut jtj, mut g) = (DMatrix::zeros(n, n), DVector::zeros(n));
-            gram(&j, &r, &mut Vec::new(), &mut jtj, &mut g);
-            let (want_h, want_g) = (j.transpose() * &j, j.transpose() * &r);
-            assert!(
-                (&jtj - &want_h).norm() <= 1e-12 * want_h.norm(),
-                "{m}x{n}: {jtj} vs {want_h}"
-            );
-            assert!((&g - &want_g).norm() <= 1e-12 * want_g.norm().max(1.0), "{m}x{n}");
-            // The vectorised and the portable path give the same numbers.
-            let (mut h2, mut g2) = (DMatrix::zeros(n, n), DVector::zeros(n));
-            gram_portable(&j, &r, &mut Vec::new(), &mut h2, &mut g2);
-            assert_eq!((h2, g2), (jtj, g), "{m}x{n}");
+            let cov = DMatrix::from_fn(m, m, |a, b| {
+                if a == b {
+                    2.0 + a as f64
+                } else {
+                    0.3 / (1.0 + a.abs_diff(b) as f64)
+                }
+            });
+            let sigmas: Vec<f64> = (0..m).map(|k| 0.5 + 0.1 * k as f64).collect();
+            for noise in [
+                NoiseModel::from_covariance(&cov).expect("spd"),
+                NoiseModel::diagonal(&sigmas).expect("sigmas"),
+            ] {
+                let mut jw = j.clone();
+                noise.whiten_jacobian(&mut jw);
+                let rw = noise.whiten(&r);
+                let (want_h, want_g) = (jw.transpose() * &jw, jw.transpose() * &rw);
+                let mut info = Information::default();
+                let (mut h, mut g) = (DMatrix::zeros(0, 0), DVector::zeros(0));
+                let norm = whitened_gram(&noise, &j, &r, &mut info, &mut h, &mut g);
+                assert!((norm - rw.norm()).abs() <= 1e-12 * rw.norm());
+                assert!(
+                    (&h - &want_h).norm() <= 1e-12 * want_h.norm(),
+                    "{m}x{n}: {h} vs {want_h}"
+                );
+                assert!((&g - &want_g).norm() <= 1e-12 * want_g.norm().max(1.0), "{m}x{n}");
+                // The vectorised and the portable tiles give the same numbers.
+                let mut portable = vec![0.0; info.h.len()];
+                lower_gram_portable(&info.rows, info.width, &mut portable);
+                for jb in (0..info.width).step_by(4) {
+                    for c in jb..jb + 4 {
+                        let col = c * info.width;
+                        assert_eq!(
+                            portable[col + jb..col + info.width],
+                            info.h[col + jb..col + info.width],
+                            "{m}x{n}"
+                        );
+                    }
+                }
+            }
         }
     }
 

@@ -133,7 +133,11 @@ pub fn normal_equations(
     }
     let mut h = DMatrix::zeros(n, n);
     let mut g = DVector::zeros(n);
-    let (mut jt, mut hf, mut gf) = (Vec::new(), DMatrix::zeros(0, 0), DVector::zeros(0));
+    let (mut info, mut hf, mut gf) = (
+        crate::linear::Information::default(),
+        DMatrix::zeros(0, 0),
+        DVector::zeros(0),
+    );
     for f in factors {
         let noise = f.noise();
         let m = noise.dim();
@@ -160,7 +164,7 @@ pub fn normal_equations(
             a.columns_mut(c0, d).copy_from(&jac[i]);
             c0 += d;
         }
-        crate::linear::whitened_gram(noise, &mut a, &r, &mut jt, &mut hf, &mut gf);
+        crate::linear::whitened_gram(noise, &a, &r, &mut info, &mut hf, &mut gf);
         let mut ca = 0;
         for &(_, off_a, da) in &free {
             let mut gb = g.rows_mut(off_a, da);

@@ -140,8 +140,40 @@ impl NoiseModel {
                 j.row_mut(row).scale_mut(*s);
             }
         } else {
-            upper_mul_columns(self.sqrt_info.as_slice(), j.nrows(), j.as_mut_slice());
+            let m = j.nrows();
+            for col in j.as_mut_slice().chunks_exact_mut(m.max(1)) {
+                upper_mul_in_place(self.sqrt_info.as_slice(), col);
+            }
         }
+    }
+
+    /// `R J` for a Jacobian stored by rows: `rows` holds the `dim()` rows of `J`, each `width`
+    /// long (a multiple of 4), one after the other; `out` (the same size) receives those of
+    /// `R J`. Each row of the result is a sum of whole rows of `J` (contiguous, so the adds
+    /// vectorise), accumulated in the same order as [`NoiseModel::whiten_jacobian`] (the same
+    /// numbers).
+    pub(crate) fn whiten_rows(&self, rows: &[f64], width: usize, out: &mut [f64]) {
+        let m = self.dim();
+        debug_assert!(width.is_multiple_of(4) && rows.len() == m * width && out.len() == m * width);
+        if self.diagonal {
+            for ((o, x), s) in out
+                .chunks_exact_mut(width)
+                .zip(rows.chunks_exact(width))
+                .zip(self.sqrt_info.diagonal().iter())
+            {
+                for (oi, xi) in o.iter_mut().zip(x) {
+                    *oi = xi * s;
+                }
+            }
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            unsafe { upper_mul_rows_avx2(self.sqrt_info.as_slice(), m, rows, width, out) };
+            return;
+        }
+        upper_mul_rows(self.sqrt_info.as_slice(), m, rows, width, out);
     }
 
     /// The factor error of an unwhitened residual: `0.5 ||R r||^2`, or the kernel's loss.
@@ -161,28 +193,29 @@ impl NoiseModel {
     }
 }
 
-/// [`upper_mul_in_place`] on each column of a column-major matrix of `m` rows; with AVX2
-/// where the CPU has it (the same operations in the same order).
-fn upper_mul_columns(r: &[f64], m: usize, columns: &mut [f64]) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2, checked just above.
-        unsafe { upper_mul_columns_avx2(r, m, columns) };
-        return;
-    }
-    upper_mul_columns_portable(r, m, columns);
-}
-
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn upper_mul_columns_avx2(r: &[f64], m: usize, columns: &mut [f64]) {
-    upper_mul_columns_portable(r, m, columns);
+fn upper_mul_rows_avx2(r: &[f64], m: usize, rows: &[f64], width: usize, out: &mut [f64]) {
+    upper_mul_rows(r, m, rows, width, out);
 }
 
+/// Row `i` of `R J` is the sum over `k >= i` of `R[i, k]` times row `k` of `J`, added in
+/// increasing `k` (`R` upper-triangular `m x m`, column-major; rows `width` long).
 #[inline(always)]
-fn upper_mul_columns_portable(r: &[f64], m: usize, columns: &mut [f64]) {
-    for col in columns.chunks_exact_mut(m.max(1)) {
-        upper_mul_in_place(r, col);
+fn upper_mul_rows(r: &[f64], m: usize, rows: &[f64], width: usize, out: &mut [f64]) {
+    for (i, o) in out.chunks_exact_mut(width).enumerate() {
+        o.fill(0.0);
+        for (k, x) in rows.chunks_exact(width).enumerate().skip(i) {
+            let rik = r[k * m + i];
+            if rik == 0.0 {
+                continue;
+            }
+            for (o4, x4) in o.chunks_exact_mut(4).zip(x.chunks_exact(4)) {
+                for (oi, xi) in o4.iter_mut().zip(x4) {
+                    *oi += rik * xi;
+                }
+            }
+        }
     }
 }
 
