@@ -32,10 +32,24 @@ struct Update {
     mid: usize,
 }
 
-/// For each supernode, the descendants that update it (in increasing order), and the
-/// workspace sizes the numeric factorisation needs.
+/// A run of consecutive stored entries of the input matrix that land on consecutive entries
+/// of the factor's values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Run {
+    source: usize,
+    target: usize,
+    len: usize,
+}
+
+/// For each supernode, where the input's entries go in its panel (in runs) and the
+/// descendants that update it (in increasing order), and the workspace sizes the numeric
+/// factorisation needs.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) struct UpdatePlan {
+    run_ptr: Vec<usize>,
+    runs: Vec<Run>,
+    /// Per column, the index of its diagonal entry in the factor's values.
+    diagonal: Vec<usize>,
     ptr: Vec<usize>,
     updates: Vec<Update>,
     /// The largest update product (rows x columns).
@@ -45,9 +59,11 @@ pub(crate) struct UpdatePlan {
 }
 
 impl UpdatePlan {
-    /// The updates of `symbolic`: a supernode's off-diagonal rows, grouped by the supernode
-    /// that holds them, are the supernodes it updates.
-    pub(crate) fn new(symbolic: &SymbolicSupernodalCholesky<usize>) -> Self {
+    /// The plan of factorising the lower triangle stored in compressed columns `(col_ptr,
+    /// row_idx)` with `symbolic`: the runs of its entries, and the updates (a supernode's
+    /// off-diagonal rows, grouped by the supernode that holds them, are the supernodes it
+    /// updates).
+    pub(crate) fn new(symbolic: &SymbolicSupernodalCholesky<usize>, (col_ptr, row_idx): (&[usize], &[usize])) -> Self {
         let n_super = symbolic.n_supernodes();
         let (begin, end) = (symbolic.supernode_begin(), symbolic.supernode_end());
         let row_ptr = symbolic.col_ptr_for_row_idx();
@@ -93,7 +109,11 @@ impl UpdatePlan {
             updates[next[target]] = u;
             next[target] += 1;
         }
+        let (run_ptr, runs, diagonal) = assembly(symbolic, col_ptr, row_idx);
         Self {
+            run_ptr,
+            runs,
+            diagonal,
             ptr,
             updates,
             max_product,
@@ -110,6 +130,59 @@ impl UpdatePlan {
     pub(crate) fn len(&self) -> usize {
         self.updates.len()
     }
+}
+
+/// Per supernode, the runs that carry the entries on and below the diagonal of `(col_ptr,
+/// row_idx)` into its panel (each entry to its own place, so they are copies), and per column
+/// the place of the diagonal entry.
+fn assembly(
+    symbolic: &SymbolicSupernodalCholesky<usize>,
+    col_ptr: &[usize],
+    row_idx: &[usize],
+) -> (Vec<usize>, Vec<Run>, Vec<usize>) {
+    let (begin, end) = (symbolic.supernode_begin(), symbolic.supernode_end());
+    let row_ptr = symbolic.col_ptr_for_row_idx();
+    let val_ptr = symbolic.col_ptr_for_val();
+    let rows = symbolic.row_idx();
+    let mut g2l = vec![usize::MAX; symbolic.nrows()];
+    let mut run_ptr = Vec::with_capacity(symbolic.n_supernodes() + 1);
+    let mut runs: Vec<Run> = Vec::new();
+    let mut diagonal = vec![0; symbolic.nrows()];
+    run_ptr.push(0);
+    for s in 0..symbolic.n_supernodes() {
+        let (s_start, s_end) = (begin[s], end[s]);
+        let ncols = s_end - s_start;
+        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
+        let nrows = ncols + pattern.len();
+        for (i, &r) in pattern.iter().enumerate() {
+            g2l[r] = ncols + i;
+        }
+        for j in s_start..s_end {
+            let column = val_ptr[s] + (j - s_start) * nrows;
+            diagonal[j] = column + j - s_start;
+            let first_run = runs.len();
+            let entries = col_ptr[j]..col_ptr[j + 1];
+            for (k, &i) in entries.clone().zip(&row_idx[entries]) {
+                if i < j {
+                    continue;
+                }
+                let target = column + if i < s_end { i - s_start } else { g2l[i] };
+                match runs[first_run..].last_mut() {
+                    Some(run) if run.source + run.len == k && run.target + run.len == target => run.len += 1,
+                    _ => runs.push(Run {
+                        source: k,
+                        target,
+                        len: 1,
+                    }),
+                }
+            }
+        }
+        for &r in pattern {
+            g2l[r] = usize::MAX;
+        }
+        run_ptr.push(runs.len());
+    }
+    (run_ptr, runs, diagonal)
 }
 
 /// Buffers of [`factorize`], kept between factorisations of one structure.
@@ -140,9 +213,9 @@ pub(crate) struct NonPositivePivot {
     pub(crate) column: usize,
 }
 
-/// Factorises the symmetric matrix whose lower triangle is `(col_ptr, row_idx, values)`
-/// (compressed columns, the structure `symbolic` was made for, no permutation) plus `lambda`
-/// on its diagonal (damping, added as the values are scattered: no damped copy) into
+/// Factorises the symmetric matrix whose lower triangle is stored in `values` (compressed
+/// columns, the structure `symbolic` and `plan` were made for, no permutation) plus `lambda`
+/// on its diagonal (damping, added as the values are copied in: no damped copy) into
 /// `l_values`, in faer's supernodal layout (each supernode's columns, diagonal block first,
 /// column-major).
 ///
@@ -151,7 +224,7 @@ pub(crate) struct NonPositivePivot {
 pub(crate) fn factorize(
     symbolic: &SymbolicSupernodalCholesky<usize>,
     plan: &UpdatePlan,
-    (col_ptr, row_idx, values): (&[usize], &[usize], &[f64]),
+    values: &[f64],
     lambda: f64,
     l_values: &mut [f64],
     work: &mut Workspace,
@@ -161,7 +234,6 @@ pub(crate) fn factorize(
     let val_ptr = symbolic.col_ptr_for_val();
     let rows = symbolic.row_idx();
     let g2l = &mut work.global_to_local;
-    l_values.fill(0.0);
     for s in 0..symbolic.n_supernodes() {
         let (s_start, s_end) = (begin[s], end[s]);
         let ncols = s_end - s_start;
@@ -173,16 +245,14 @@ pub(crate) fn factorize(
         let local = |r: usize, g2l: &[usize]| if r < s_end { r - s_start } else { g2l[r] };
         let (done, rest) = l_values.split_at_mut(val_ptr[s]);
         let ls = &mut rest[..val_ptr[s + 1] - val_ptr[s]];
+        // Zeroed here, not all at once before: the panel is then in cache for what follows.
+        ls.fill(0.0);
+        for run in &plan.runs[plan.run_ptr[s]..plan.run_ptr[s + 1]] {
+            let at = run.target - val_ptr[s];
+            ls[at..at + run.len].copy_from_slice(&values[run.source..run.source + run.len]);
+        }
         for j in s_start..s_end {
-            let col = &mut ls[(j - s_start) * nrows..][..nrows];
-            for k in col_ptr[j]..col_ptr[j + 1] {
-                let i = row_idx[k];
-                if i > j {
-                    col[local(i, g2l)] += values[k];
-                } else if i == j {
-                    col[local(i, g2l)] += values[k] + lambda;
-                }
-            }
+            ls[plan.diagonal[j] - val_ptr[s]] += lambda;
         }
         for u in plan.updates_of(s) {
             let d = u.source;

@@ -296,7 +296,7 @@ impl HessianStructure {
         };
         let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Upper, SymmetricOrdering::Identity, params)
             .map_err(|e| Error::LinearSolve(format!("symbolic: {e:?}")))?;
-        let plan = Arc::new(UpdatePlan::new(supernodal(&symbolic)?));
+        let plan = Arc::new(UpdatePlan::new(supernodal(&symbolic)?, (&col_ptr, &row_idx)));
         Ok(Self {
             ordering,
             elimination_position,
@@ -793,7 +793,7 @@ impl Factorization {
         factorize(
             supernodal(&self.symbolic)?,
             &self.plan,
-            (&structure.col_ptr, &structure.row_idx, hessian),
+            hessian,
             lambda,
             &mut self.values,
             &mut self.work,
