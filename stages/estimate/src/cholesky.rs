@@ -8,8 +8,9 @@
 //! algorithm on the same storage, but it visits only the descendants that update each
 //! supernode, found once per symbolic structure ([`UpdatePlan`]): its cost follows the fill.
 //! faer's dense kernels do the arithmetic, but for supernodes of at most [`SMALL_COLUMNS`]
-//! columns, whose diagonal block and the rows below it are factorised by one column-by-column
-//! kernel (faer's blocked kernels spend more on set-up than on arithmetic at those sizes), and
+//! columns, whose diagonal block and the rows below it are factorised by one left-looking
+//! kernel of our own (faer's blocked kernels spend more on set-up than on arithmetic at those
+//! sizes), and
 //! faer's solve reads the result.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
@@ -315,9 +316,9 @@ fn factor_panel(panel: &mut [f64], nrows: usize, ncols: usize, dense: &mut MemBu
 }
 
 /// Factorises a supernode's `nrows x ncols` panel (column-major: its diagonal block on top, the
-/// rows below it under) in place, column by column: each column takes the updates of the
-/// columns left of it over its rows from the diagonal down, then is divided by the square root
-/// of its diagonal entry. That is the diagonal block's Cholesky factor and the rows below
+/// rows below it under) in place, left-looking: each column takes the updates of the columns
+/// left of it over its rows from the diagonal down, then is divided by the square root of its
+/// diagonal entry. That is the diagonal block's Cholesky factor and the rows below
 /// solved against it, in one pass. Uses AVX2 and FMA where the CPU has them.
 ///
 /// # Errors
@@ -338,35 +339,149 @@ fn small_panel_cholesky_avx2(panel: &mut [f64], nrows: usize, ncols: usize) -> R
 }
 
 /// [`small_panel_cholesky`] with `nmadd(a, b, c) = c - a b`.
+///
+/// Columns are taken four at a time: the updates from the columns left of the four, over the
+/// rows below them, run as a register-blocked product (each entry of a left column loaded
+/// once for the four), skipping the left columns that are zero on all four (the explicit
+/// zeros of merged supernodes); then the four are finished one by one. Every entry still takes
+/// its updates one by one in increasing column order, as in the plain column-by-column
+/// algorithm, so the numbers are those of it.
 #[inline(always)]
 fn small_panel_cholesky_with(
     panel: &mut [f64],
     nrows: usize,
     ncols: usize,
-    nmadd: impl Fn(f64, f64, f64) -> f64,
+    nmadd: impl Fn(f64, f64, f64) -> f64 + Copy,
 ) -> Result<(), usize> {
-    for j in 0..ncols {
-        let (left, right) = panel.split_at_mut(j * nrows);
-        let col = &mut right[j..nrows];
-        for k in 0..j {
-            let done = &left[k * nrows + j..(k + 1) * nrows];
-            let l_jk = done[0];
-            if l_jk != 0.0 {
-                for (x, &l) in col.iter_mut().zip(done) {
-                    *x = nmadd(l, l_jk, *x);
+    debug_assert!(ncols <= SMALL_COLUMNS);
+    let mut left = [0usize; SMALL_COLUMNS];
+    for jb in (0..ncols).step_by(BLOCK) {
+        let nb = (ncols - jb).min(BLOCK);
+        if nb == BLOCK {
+            let mut n_left = 0;
+            for k in 0..jb {
+                if panel[k * nrows + jb..][..BLOCK].iter().any(|l| *l != 0.0) {
+                    left[n_left] = k;
+                    n_left += 1;
+                }
+            }
+            block_update(panel, nrows, jb, &left[..n_left], nmadd);
+        } else {
+            // The last columns, fewer than a block: their updates one column at a time.
+            for j in jb..ncols {
+                for k in 0..jb {
+                    column_update(panel, nrows, j, k, nmadd);
                 }
             }
         }
-        let pivot = col[0];
-        if pivot.is_nan() || pivot <= 0.0 {
-            return Err(j);
-        }
-        let d = pivot.sqrt();
-        col[0] = d;
-        let inv = d.recip();
-        for x in &mut col[1..] {
-            *x *= inv;
+        for j in jb..jb + nb {
+            for k in jb..j {
+                column_update(panel, nrows, j, k, nmadd);
+            }
+            let col = &mut panel[j * nrows + j..(j + 1) * nrows];
+            let pivot = col[0];
+            if pivot.is_nan() || pivot <= 0.0 {
+                return Err(j);
+            }
+            let d = pivot.sqrt();
+            col[0] = d;
+            let inv = d.recip();
+            for x in &mut col[1..] {
+                *x *= inv;
+            }
         }
     }
     Ok(())
+}
+
+/// Columns taken together by [`small_panel_cholesky_with`].
+const BLOCK: usize = 4;
+/// Rows of a register tile in [`block_update`].
+const TILE: usize = 8;
+
+/// Column `j`'s entries from its diagonal down take column `k`'s update.
+#[inline(always)]
+fn column_update(panel: &mut [f64], nrows: usize, j: usize, k: usize, nmadd: impl Fn(f64, f64, f64) -> f64) {
+    let (left, right) = panel.split_at_mut(j * nrows);
+    let done = &left[k * nrows + j..(k + 1) * nrows];
+    let l_jk = done[0];
+    if l_jk != 0.0 {
+        for (x, &l) in right[j..nrows].iter_mut().zip(done) {
+            *x = nmadd(l, l_jk, *x);
+        }
+    }
+}
+
+/// Columns `jb..jb + BLOCK` take the updates of the columns `left` (increasing, all left of
+/// `jb`), over their rows from `jb` down: the rows of their diagonal block entry by entry (only
+/// those on or below the diagonal), the rows below in tiles of [`TILE`] rows (then one of half
+/// that) held in registers across all of `left`, the last few entry by entry.
+#[inline(always)]
+fn block_update(
+    panel: &mut [f64],
+    nrows: usize,
+    jb: usize,
+    left: &[usize],
+    nmadd: impl Fn(f64, f64, f64) -> f64 + Copy,
+) {
+    for t in 0..BLOCK {
+        let j = jb + t;
+        for i in j..jb + BLOCK {
+            let mut x = panel[j * nrows + i];
+            for &k in left {
+                x = nmadd(panel[k * nrows + i], panel[k * nrows + j], x);
+            }
+            panel[j * nrows + i] = x;
+        }
+    }
+    let (done, block) = panel.split_at_mut(jb * nrows);
+    let mut i = jb + BLOCK;
+    while i + TILE <= nrows {
+        tile_update::<TILE>(done, block, nrows, jb, i, left, nmadd);
+        i += TILE;
+    }
+    if i + TILE / 2 <= nrows {
+        tile_update::<{ TILE / 2 }>(done, block, nrows, jb, i, left, nmadd);
+        i += TILE / 2;
+    }
+    for i in i..nrows {
+        for t in 0..BLOCK {
+            let mut x = block[t * nrows + i];
+            for &k in left {
+                x = nmadd(done[k * nrows + i], done[k * nrows + jb + t], x);
+            }
+            block[t * nrows + i] = x;
+        }
+    }
+}
+
+/// Rows `i..i + R` of the block of columns `jb..jb + BLOCK` (`block`, the panel from column
+/// `jb`) take the updates of the columns `left` of `done` (the panel before `jb`), held in
+/// registers across all of `left`.
+#[inline(always)]
+fn tile_update<const R: usize>(
+    done: &[f64],
+    block: &mut [f64],
+    nrows: usize,
+    jb: usize,
+    i: usize,
+    left: &[usize],
+    nmadd: impl Fn(f64, f64, f64) -> f64,
+) {
+    let mut acc = [[0.0f64; R]; BLOCK];
+    for (t, acc_t) in acc.iter_mut().enumerate() {
+        acc_t.copy_from_slice(&block[t * nrows + i..][..R]);
+    }
+    for &k in left {
+        let col = &done[k * nrows..(k + 1) * nrows];
+        let l = &col[i..i + R];
+        for (acc_t, &l_jk) in acc.iter_mut().zip(&col[jb..jb + BLOCK]) {
+            for (x, &li) in acc_t.iter_mut().zip(l) {
+                *x = nmadd(li, l_jk, *x);
+            }
+        }
+    }
+    for (t, acc_t) in acc.iter().enumerate() {
+        block[t * nrows + i..][..R].copy_from_slice(acc_t);
+    }
 }
