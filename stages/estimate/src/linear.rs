@@ -200,24 +200,35 @@ fn minimum_degree_positions(pattern: &[(usize, usize)], nvar: usize) -> Result<V
     Ok(perm_inv)
 }
 
-/// The compressed columns of the transpose of a `dim x dim` pattern (row indices sorted).
-fn transpose_pattern(dim: usize, col_ptr: &[usize], row_idx: &[usize]) -> (Vec<usize>, Vec<usize>) {
-    let mut count = vec![0usize; dim + 1];
-    for &r in row_idx {
-        count[r + 1] += 1;
-    }
-    for k in 0..dim {
-        count[k + 1] += count[k];
-    }
-    let mut next = count.clone();
-    let mut out = vec![0usize; row_idx.len()];
-    for c in 0..dim {
-        for &r in &row_idx[col_ptr[c]..col_ptr[c + 1]] {
-            out[next[r]] = c;
-            next[r] += 1;
+/// The compressed columns of the upper triangle of a symmetric pattern made of dense blocks:
+/// `rows_of[b]` holds the variables `a >= b` (sorted) whose block `(a, b)` is stored, with the
+/// diagonal block whole. Column `c` of variable `a` then has the rows of every variable `b`
+/// with a block `(a, b)`, in order (its transpose, built by blocks). `dim` and `nnz` are the
+/// pattern's size and number of entries.
+fn upper_pattern(
+    rows_of: &[Vec<usize>],
+    dims: &[usize],
+    offsets: &[usize],
+    (dim, nnz): (usize, usize),
+) -> (Vec<usize>, Vec<usize>) {
+    let mut cols_of: Vec<Vec<usize>> = vec![Vec::new(); rows_of.len()];
+    for (b, rows) in rows_of.iter().enumerate() {
+        for &a in rows {
+            cols_of[a].push(b);
         }
     }
-    (count, out)
+    let mut col_ptr = Vec::with_capacity(dim + 1);
+    let mut row_idx = Vec::with_capacity(nnz);
+    col_ptr.push(0);
+    for (a, cols) in cols_of.iter().enumerate() {
+        for _ in 0..dims[a] {
+            for &b in cols {
+                row_idx.extend(offsets[b]..offsets[b] + dims[b]);
+            }
+            col_ptr.push(row_idx.len());
+        }
+    }
+    (col_ptr, row_idx)
 }
 
 impl HessianStructure {
@@ -251,8 +262,13 @@ impl HessianStructure {
         for (a, b) in elim_pattern {
             rows_of[b].push(a);
         }
+        let nnz = rows_of
+            .iter()
+            .zip(&elim_dims)
+            .map(|(rows, d)| d * rows.iter().map(|a| elim_dims[*a]).sum::<usize>())
+            .sum();
         let mut col_ptr = Vec::with_capacity(dim + 1);
-        let mut row_idx = Vec::new();
+        let mut row_idx = Vec::with_capacity(nnz);
         let mut diag = Vec::with_capacity(dim);
         let mut segments = vec![Vec::new(); nvar];
         col_ptr.push(0);
@@ -278,7 +294,7 @@ impl HessianStructure {
         }
         // faer's symbolic analysis without a permutation reads the upper triangle (the numeric
         // factorisation reads the lower one, as stored): hand it the transposed pattern.
-        let (upper_col_ptr, upper_row_idx) = transpose_pattern(dim, &col_ptr, &row_idx);
+        let (upper_col_ptr, upper_row_idx) = upper_pattern(&rows_of, &elim_dims, &offsets, (dim, nnz));
         let sym = SymbolicSparseColMat::<usize>::new_checked(dim, dim, upper_col_ptr, None, upper_row_idx);
         // Supernodal: the Hessian is made of dense 3x3 to 15x15 blocks, which dense kernels
         // factor much faster than the column-by-column simplicial variant faer picks otherwise.
@@ -495,12 +511,17 @@ pub fn linearize_into(
             {
                 *gi += gv;
             }
-            // The diagonal block, whole (the structure stores it so).
+            // The diagonal block, whole (the structure stores it so): above the diagonal
+            // from the rows of the columns before.
             let seg = structure.segment(pb, pb)?;
             for c in 0..db {
                 let base = structure.col_ptr[off_b + c] + seg;
-                for (i, h) in hessian[base..base + db].iter_mut().enumerate() {
-                    *h += info.at(cb + i, cb + c);
+                let (above, below) = hessian[base..base + db].split_at_mut(c);
+                for (i, h) in above.iter_mut().enumerate() {
+                    *h += info.at(cb + c, cb + i);
+                }
+                for (h, v) in below.iter_mut().zip(info.column_from(cb + c, cb + c, db - c)) {
+                    *h += v;
                 }
             }
             // The blocks below it, on variables later in elimination order.
@@ -540,6 +561,8 @@ pub(crate) struct Information {
     h: Vec<f64>,
     /// `J^T r`, `width` long.
     g: Vec<f64>,
+    /// The whitened, reweighted residual.
+    rw: Vec<f64>,
     m: usize,
     n: usize,
     width: usize,
@@ -574,17 +597,17 @@ impl Information {
     pub(crate) fn make(&mut self, noise: &NoiseModel, r: &DVector<f64>) -> f64 {
         let w = self.width;
         noise.whiten_rows(&self.raw, w, &mut self.rows);
-        let mut rw = noise.whiten(r);
-        let norm = rw.norm();
-        let s = noise.robust_scale(&rw);
+        self.rw.resize(self.m, 0.0);
+        noise.whiten_into(r.as_slice(), &mut self.rw);
+        let norm = self.rw.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let s = noise.robust_scale_at(norm);
         if s != 1.0 {
-            for x in &mut self.rows {
+            for x in self.rows.iter_mut().chain(&mut self.rw) {
                 *x *= s;
             }
-            rw *= s;
         }
         self.g.fill(0.0);
-        for (row, rk) in self.rows.chunks_exact(w).zip(rw.iter()) {
+        for (row, rk) in self.rows.chunks_exact(w).zip(&self.rw) {
             for (gc, v) in self.g.iter_mut().zip(row) {
                 *gc += rk * v;
             }

@@ -133,6 +133,18 @@ impl NoiseModel {
         }
     }
 
+    /// `R r` into `out` (the same length as `r`).
+    pub(crate) fn whiten_into(&self, r: &[f64], out: &mut [f64]) {
+        out.copy_from_slice(r);
+        if self.diagonal {
+            for (o, s) in out.iter_mut().zip(self.sqrt_info.diagonal().iter()) {
+                *o *= s;
+            }
+        } else {
+            upper_mul_in_place(self.sqrt_info.as_slice(), out);
+        }
+    }
+
     /// `R J` in place.
     pub fn whiten_jacobian(&self, j: &mut DMatrix<f64>) {
         if self.diagonal {
@@ -189,7 +201,12 @@ impl NoiseModel {
     /// The IRLS scale `sqrt(weight)` for a whitened residual.
     #[must_use]
     pub fn robust_scale(&self, whitened: &DVector<f64>) -> f64 {
-        self.kernel.map_or(1.0, |k| k.weight(whitened.norm()).sqrt())
+        self.robust_scale_at(whitened.norm())
+    }
+
+    /// The IRLS scale for a whitened residual of norm `norm`.
+    pub(crate) fn robust_scale_at(&self, norm: f64) -> f64 {
+        self.kernel.map_or(1.0, |k| k.weight(norm).sqrt())
     }
 }
 
