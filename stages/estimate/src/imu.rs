@@ -13,7 +13,7 @@
 use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector3};
 
 use crate::factor::Factor;
-use crate::lie::{Pose3, se3_right_jacobian_inv, skew, so3_exp, so3_right_jacobian, so3_right_jacobian_inv};
+use crate::lie::{Pose3, se3_q_right, skew, so3_exp, so3_right_jacobian, so3_right_jacobian_inv};
 use crate::noise::NoiseModel;
 use crate::values::{ImuBias, Values, VarId};
 use crate::{Error, Result};
@@ -234,9 +234,21 @@ impl ImuPreintegration {
     #[must_use]
     pub fn predict(&self, pose_i: &Pose3, vel_i: &Vector3<f64>, bias_i: &ImuBias) -> (Pose3, Vector3<f64>) {
         let xi = self.bias_corrected(bias_i);
+        self.predict_corrected(pose_i, vel_i, &xi, &so3_exp(&xi.fixed_rows::<3>(0).into_owned()))
+    }
+
+    /// [`ImuPreintegration::predict`] from the bias-corrected increment `xi` and the exponential
+    /// of its rotation part.
+    fn predict_corrected(
+        &self,
+        pose_i: &Pose3,
+        vel_i: &Vector3<f64>,
+        xi: &Vector9,
+        d_rot: &Matrix3<f64>,
+    ) -> (Pose3, Vector3<f64>) {
         let dt = self.delta_t_s;
         let g = self.params.gravity_mps2;
-        let rot = pose_i.rot * so3_exp(&xi.fixed_rows::<3>(0).into_owned());
+        let rot = pose_i.rot * d_rot;
         let pos = pose_i.trans_m + pose_i.rot * xi.fixed_rows::<3>(3) + vel_i * dt + 0.5 * dt * dt * g;
         let vel = vel_i + pose_i.rot * xi.fixed_rows::<3>(6) + g * dt;
         (Pose3::new(crate::lie::orthonormalise(&rot), pos), vel)
@@ -277,24 +289,6 @@ fn log_se23(rot: &Matrix3<f64>, p: &Vector3<f64>, v: &Vector3<f64>) -> Vector9 {
     out.fixed_rows_mut::<3>(3).copy_from(&(jl_inv * p));
     out.fixed_rows_mut::<3>(6).copy_from(&(jl_inv * v));
     out
-}
-
-/// Inverse right Jacobian of SE_2(3) at `xi = [w, rho_p, rho_v]`.
-fn se23_right_jacobian_inv(xi: &Vector9) -> Matrix9 {
-    let mut j = Matrix9::zeros();
-    for (k, off) in [(0usize, 3usize), (1, 6)] {
-        let mut x6 = nalgebra::Vector6::zeros();
-        x6.fixed_rows_mut::<3>(0).copy_from(&xi.fixed_rows::<3>(0));
-        x6.fixed_rows_mut::<3>(3).copy_from(&xi.fixed_rows::<3>(off));
-        let j6 = se3_right_jacobian_inv(&x6);
-        if k == 0 {
-            j.fixed_view_mut::<3, 3>(0, 0).copy_from(&j6.fixed_view::<3, 3>(0, 0));
-        }
-        j.fixed_view_mut::<3, 3>(off, 0).copy_from(&j6.fixed_view::<3, 3>(3, 0));
-        j.fixed_view_mut::<3, 3>(off, off)
-            .copy_from(&j6.fixed_view::<3, 3>(3, 3));
-    }
-    j
 }
 
 /// The combined IMU factor on `(pose_i, vel_i, pose_j, vel_j, bias_i, bias_j)`
@@ -351,7 +345,10 @@ impl Factor for CombinedImuFactor {
         let vel_j = values.velocity(self.keys[3])?;
         let bias_i = values.bias(self.keys[4])?;
         let bias_j = values.bias(self.keys[5])?;
-        let (pred, vel_pred) = self.pim.predict(pose_i, vel_i, bias_i);
+        let xi = self.pim.bias_corrected(bias_i);
+        let theta: Vector3<f64> = xi.fixed_rows::<3>(0).into_owned();
+        let d_rot = so3_exp(&theta);
+        let (pred, vel_pred) = self.pim.predict_corrected(pose_i, vel_i, &xi, &d_rot);
         // E = X_j^-1 X_pred.
         let rjt = pose_j.rot.transpose();
         let e_rot = rjt * pred.rot;
@@ -361,74 +358,70 @@ impl Factor for CombinedImuFactor {
         let rb = bias_i.vector() - bias_j.vector();
 
         if let Some(jac) = jacobians {
-            let jinv = se23_right_jacobian_inv(&r9);
-            // -Jr^-1 Ad(E^-1); E^-1 = (R^T, -R^T p, -R^T v).
-            let ert = e_rot.transpose();
-            let mut ad = Matrix9::zeros();
-            ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&ert);
-            ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&ert);
-            ad.fixed_view_mut::<3, 3>(6, 6).copy_from(&ert);
-            ad.fixed_view_mut::<3, 3>(3, 0).copy_from(&(skew(&(-ert * e_p)) * ert));
-            ad.fixed_view_mut::<3, 3>(6, 0).copy_from(&(skew(&(-ert * e_v)) * ert));
-            let d_j = -jinv * ad;
-
-            let xi = self.pim.bias_corrected(bias_i);
-            let theta: Vector3<f64> = xi.fixed_rows::<3>(0).into_owned();
-            let dp: Vector3<f64> = xi.fixed_rows::<3>(3).into_owned();
-            let dv: Vector3<f64> = xi.fixed_rows::<3>(6).into_owned();
-            let drt = so3_exp(&theta).transpose();
-            let rpt = pred.rot.transpose();
-            let dt = self.pim.delta_t_s;
-
-            // Body-tangent perturbation of X_pred per state-i variable.
-            let mut eta_rot_i = Matrix9::zeros(); // columns: d rot_i (3), d pos_i (3), d vel_i (3)
-            eta_rot_i.fixed_view_mut::<3, 3>(0, 0).copy_from(&drt);
-            eta_rot_i.fixed_view_mut::<3, 3>(3, 0).copy_from(&(-drt * skew(&dp)));
-            eta_rot_i.fixed_view_mut::<3, 3>(6, 0).copy_from(&(-drt * skew(&dv)));
-            eta_rot_i.fixed_view_mut::<3, 3>(3, 3).copy_from(&drt);
-            eta_rot_i.fixed_view_mut::<3, 3>(3, 6).copy_from(&(rpt * dt));
-            eta_rot_i.fixed_view_mut::<3, 3>(6, 6).copy_from(&rpt);
-            let d_state_i = jinv * eta_rot_i;
-
-            let mut eta_bias = SMatrix::<f64, 9, 6>::zeros();
-            let jr_theta = so3_right_jacobian(&theta);
-            let (ha, hg) = (&self.pim.d_preint_d_bias_acc, &self.pim.d_preint_d_bias_gyro);
-            eta_bias
-                .fixed_view_mut::<3, 3>(0, 0)
-                .copy_from(&(jr_theta * ha.fixed_view::<3, 3>(0, 0)));
-            eta_bias
-                .fixed_view_mut::<3, 3>(0, 3)
-                .copy_from(&(jr_theta * hg.fixed_view::<3, 3>(0, 0)));
-            eta_bias
-                .fixed_view_mut::<3, 3>(3, 0)
-                .copy_from(&(drt * ha.fixed_view::<3, 3>(3, 0)));
-            eta_bias
-                .fixed_view_mut::<3, 3>(3, 3)
-                .copy_from(&(drt * hg.fixed_view::<3, 3>(3, 0)));
-            eta_bias
-                .fixed_view_mut::<3, 3>(6, 0)
-                .copy_from(&(drt * ha.fixed_view::<3, 3>(6, 0)));
-            eta_bias
-                .fixed_view_mut::<3, 3>(6, 3)
-                .copy_from(&(drt * hg.fixed_view::<3, 3>(6, 0)));
-            let d_bias_i = jinv * eta_bias;
-
+            // Jr^-1 of SE_2(3) at r9 is block lower-triangular, [A 0 0; Qp A 0; Qv 0 A], and so
+            // are the other 9x9 factors below: the products are taken by 3x3 blocks.
+            let w: Vector3<f64> = r9.fixed_rows::<3>(0).into_owned();
+            let a = so3_right_jacobian_inv(&w);
+            let q = |rho: Vector3<f64>| {
+                let mut x6 = nalgebra::Vector6::zeros();
+                x6.fixed_rows_mut::<3>(0).copy_from(&w);
+                x6.fixed_rows_mut::<3>(3).copy_from(&rho);
+                -a * se3_q_right(&x6) * a
+            };
+            let (qp, qv) = (
+                q(r9.fixed_rows::<3>(3).into_owned()),
+                q(r9.fixed_rows::<3>(6).into_owned()),
+            );
+            // Rows [top; mid; bottom] of Jr^-1 times a 9-row matrix given by its three 3-row blocks.
+            let jinv_times = |top: &Matrix3<f64>, mid: &Matrix3<f64>, bottom: &Matrix3<f64>| {
+                (a * top, qp * top + a * mid, qv * top + a * bottom)
+            };
             for m in jac.iter_mut() {
                 m.as_mut_slice().fill(0.0);
             }
-            // pose_i: columns [rot, trans] = state-i columns 0..6.
-            jac[0]
-                .view_mut((0, 0), (9, 6))
-                .copy_from(&d_state_i.fixed_view::<9, 6>(0, 0));
-            jac[1]
-                .view_mut((0, 0), (9, 3))
-                .copy_from(&d_state_i.fixed_view::<9, 3>(0, 6));
+
+            // -Jr^-1 Ad(E^-1); E^-1 = (R^T, -R^T p, -R^T v): Ad(E^-1) = [R^T 0 0; S_p R^T 0;
+            // S_v 0 R^T] with S = skew(-R^T p) R^T.
+            let ert = e_rot.transpose();
+            let a_ert = a * ert;
+            let (_, mid, bottom) = jinv_times(&ert, &(skew(&(-ert * e_p)) * ert), &(skew(&(-ert * e_v)) * ert));
             // pose_j: body perturbation [rot, pos]; vel_j world additive -> body R_j^T.
-            jac[2].view_mut((0, 0), (9, 6)).copy_from(&d_j.fixed_view::<9, 6>(0, 0));
-            jac[3]
-                .view_mut((0, 0), (9, 3))
-                .copy_from(&(d_j.fixed_view::<9, 3>(0, 6) * rjt));
-            jac[4].view_mut((0, 0), (9, 6)).copy_from(&d_bias_i);
+            jac[2].view_mut((0, 0), (3, 3)).copy_from(&-a_ert);
+            jac[2].view_mut((3, 0), (3, 3)).copy_from(&-mid);
+            jac[2].view_mut((6, 0), (3, 3)).copy_from(&-bottom);
+            jac[2].view_mut((3, 3), (3, 3)).copy_from(&-a_ert);
+            jac[3].view_mut((6, 0), (3, 3)).copy_from(&(-a_ert * rjt));
+
+            // Body-tangent perturbation of X_pred per state-i variable: columns d rot_i, d pos_i,
+            // d vel_i; [drt 0 0; -drt [dp]x drt rpt dt; -drt [dv]x 0 rpt].
+            let dp: Vector3<f64> = xi.fixed_rows::<3>(3).into_owned();
+            let dv: Vector3<f64> = xi.fixed_rows::<3>(6).into_owned();
+            let drt = d_rot.transpose();
+            let rpt = pred.rot.transpose();
+            let dt = self.pim.delta_t_s;
+            let a_drt = a * drt;
+            let (top, mid, bottom) = jinv_times(&drt, &(-drt * skew(&dp)), &(-drt * skew(&dv)));
+            jac[0].view_mut((0, 0), (3, 3)).copy_from(&top);
+            jac[0].view_mut((3, 0), (3, 3)).copy_from(&mid);
+            jac[0].view_mut((6, 0), (3, 3)).copy_from(&bottom);
+            jac[0].view_mut((3, 3), (3, 3)).copy_from(&a_drt);
+            let a_rpt = a * rpt;
+            jac[1].view_mut((3, 0), (3, 3)).copy_from(&(a_rpt * dt));
+            jac[1].view_mut((6, 0), (3, 3)).copy_from(&a_rpt);
+
+            // The bias at i, through the preintegrated increment's first-order correction.
+            let jr_theta = so3_right_jacobian(&theta);
+            let (ha, hg) = (&self.pim.d_preint_d_bias_acc, &self.pim.d_preint_d_bias_gyro);
+            for (col, h) in [(0, ha), (3, hg)] {
+                let (top, mid, bottom) = jinv_times(
+                    &(jr_theta * h.fixed_view::<3, 3>(0, 0)),
+                    &(drt * h.fixed_view::<3, 3>(3, 0)),
+                    &(drt * h.fixed_view::<3, 3>(6, 0)),
+                );
+                jac[4].view_mut((0, col), (3, 3)).copy_from(&top);
+                jac[4].view_mut((3, col), (3, 3)).copy_from(&mid);
+                jac[4].view_mut((6, col), (3, 3)).copy_from(&bottom);
+            }
             jac[4].view_mut((9, 0), (6, 6)).fill_with_identity();
             jac[5].view_mut((9, 0), (6, 6)).fill_with_identity();
             jac[5].view_mut((9, 0), (6, 6)).neg_mut();

@@ -72,7 +72,7 @@ pub fn so3_right_jacobian_inv(omega: &Vector3<f64>) -> Matrix3<f64> {
 }
 
 /// The `Q` block of the SE(3) right Jacobian (GTSAM's `computeQforExpmapDerivative`).
-fn se3_q_right(xi: &Vector6<f64>) -> Matrix3<f64> {
+pub(crate) fn se3_q_right(xi: &Vector6<f64>) -> Matrix3<f64> {
     let w = skew(&xi.fixed_rows::<3>(0).into_owned());
     let v = skew(&xi.fixed_rows::<3>(3).into_owned());
     let phi = xi.fixed_rows::<3>(0).norm();
