@@ -107,10 +107,6 @@ impl Ordering {
     }
 }
 
-/// faer's supernode amalgamation thresholds `(columns, fraction of zeros)`: two supernodes
-/// merge when together they have at most `columns` columns and less than `fraction` zeros.
-const SUPERNODE_RELAX: &[(usize, f64)] = &[(32, 0.5), (64, 0.2), (usize::MAX, 0.05)];
-
 /// The compressed-column structure of `J^T J` for one set of free variables and factors, its
 /// elimination ordering and the symbolic Cholesky of that structure.
 ///
@@ -299,15 +295,13 @@ impl HessianStructure {
         // Supernodal: the Hessian is made of dense 3x3 to 15x15 blocks, which dense kernels
         // factor much faster than the column-by-column simplicial variant faer picks otherwise.
         // (Forced, also because the simplicial numeric factorisation would read the upper
-        // triangle, which is not stored.) Supernodes are merged more eagerly than faer's
-        // default: two 15-column IMU states become one 30-column supernode, more arithmetic on
-        // explicit zeros (78 instead of 56 Mflop at N = 2000) but half the supernodes, whose
-        // fixed cost dominates at these sizes (19 instead of 25 ms per factorisation).
+        // triangle, which is not stored.) Supernodes are not merged: merging adds explicit
+        // zeros to the factor (1.95 instead of 1.49 million entries at N = 2000 with two IMU
+        // states to a supernode), whose memory traffic in every factorisation and solve costs
+        // more than fewer, wider supernodes save (batch LM 0.225 -> 0.213 s at N = 2000).
         let params = CholeskySymbolicParams {
             supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
-            supernodal_params: SymbolicSupernodalParams {
-                relax: Some(SUPERNODE_RELAX),
-            },
+            supernodal_params: SymbolicSupernodalParams { relax: None },
             ..Default::default()
         };
         let symbolic = factorize_symbolic_cholesky(sym.as_ref(), Side::Upper, SymmetricOrdering::Identity, params)
@@ -963,8 +957,23 @@ mod tests {
     #[test]
     fn supernodal_factor_is_faers_and_visits_only_the_updating_supernodes() {
         let mut widths = Vec::new();
-        for (n, every, back) in [(3, 5, 2), (400, 1000, 1), (400, 7, 50), (400, 3, 397)] {
-            let (graph, values) = chain_with_closures(n, every, back);
+        let mut cases: Vec<(usize, FactorGraph, Values)> = [(3, 5, 2), (400, 1000, 1), (400, 7, 50), (400, 3, 397)]
+            .into_iter()
+            .map(|(n, every, back)| {
+                let (graph, values) = chain_with_closures(n, every, back);
+                (n, graph, values)
+            })
+            .collect();
+        // Twelve poses all seen from one another: one supernode wider than the small kernel's.
+        let (mut graph, values) = chain_with_closures(12, 1000, 1);
+        let noise = NoiseModel::isotropic(6, 0.5).expect("noise");
+        for i in 0..12 {
+            for j in i + 2..12 {
+                graph.add(BetweenPose::new(VarId(i), VarId(j), Pose3::identity(), noise.clone()).expect("closure"));
+            }
+        }
+        cases.push((12, graph, values));
+        for (n, graph, values) in cases {
             let all: Vec<usize> = (0..graph.len()).collect();
             let st = HessianStructure::new(&graph, &all, &values, &Ordering::all(&values)).expect("structure");
             let ne = linearize(&graph, &all, &values, &st).expect("linearize");
