@@ -19,7 +19,7 @@ use faer::sparse::{SymbolicSparseColMat, SymbolicSparseColMatRef};
 use faer::{Conj, Par, Side};
 use nalgebra::{DMatrix, DVector};
 
-use crate::cholesky::{UpdatePlan, Workspace, factorize};
+use crate::cholesky::{UpdatePlan, Workspace, factorize, solve_one};
 use crate::factor::Factor;
 use crate::graph::FactorGraph;
 use crate::noise::NoiseModel;
@@ -820,6 +820,12 @@ impl Factorization {
 
     /// Solves `(H + lambda I) x = rhs` in place; `rhs` may hold several columns (column-major).
     pub fn solve_in_place(&self, rhs: &mut [f64]) {
+        if rhs.len() == self.dim
+            && let Ok(symbolic) = supernodal(&self.symbolic)
+        {
+            solve_one(symbolic, &self.values, rhs);
+            return;
+        }
         let ncols = rhs.len() / self.dim.max(1);
         let mat = faer::MatMut::from_column_major_slice_mut(rhs, self.dim, ncols);
         let mut mem = MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(ncols, Par::Seq));
