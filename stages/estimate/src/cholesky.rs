@@ -10,8 +10,8 @@
 //! faer's dense kernels do the arithmetic, but for supernodes of at most [`SMALL_COLUMNS`]
 //! columns, whose diagonal block and the rows below it are factorised by one left-looking
 //! kernel of our own (faer's blocked kernels spend more on set-up than on arithmetic at those
-//! sizes), and
-//! faer's solve reads the result.
+//! sizes). The result is in faer's layout: one right-hand side is solved here ([`solve_one`]),
+//! several by faer's solve.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::{LltError, LltRegularization, cholesky_in_place, cholesky_in_place_scratch};

@@ -818,7 +818,8 @@ impl Factorization {
         .map_err(|e| Error::LinearSolve(format!("not positive definite at column {}", e.column)))
     }
 
-    /// Solves `(H + lambda I) x = rhs` in place; `rhs` may hold several columns (column-major).
+    /// Solves `(H + lambda I) x = rhs` in place; `rhs` may hold several columns (column-major:
+    /// one column by our own substitution, several by faer's).
     pub fn solve_in_place(&self, rhs: &mut [f64]) {
         if rhs.len() == self.dim
             && let Ok(symbolic) = supernodal(&self.symbolic)
