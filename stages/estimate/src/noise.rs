@@ -190,7 +190,15 @@ impl NoiseModel {
     /// The factor error of an unwhitened residual: `0.5 ||R r||^2`, or the kernel's loss.
     #[must_use]
     pub fn error(&self, r: &DVector<f64>) -> f64 {
-        let d2 = self.whiten(r).norm_squared();
+        // Whitened on the stack (every factor's error is taken at every candidate step).
+        let mut small = [0.0f64; 32];
+        let d2 = match small.get_mut(..r.len()) {
+            Some(w) => {
+                self.whiten_into(r.as_slice(), w);
+                w.iter().map(|x| x * x).sum()
+            }
+            None => self.whiten(r).norm_squared(),
+        };
         match self.kernel {
             Some(k) => k.loss(d2.sqrt()),
             None => 0.5 * d2,
