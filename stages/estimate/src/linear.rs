@@ -541,9 +541,9 @@ pub fn linearize_into(
 /// Jacobian, with the buffers to make the next one.
 ///
 /// The Jacobian is held by rows, each padded with zeros to a multiple of 4 columns: whitening
-/// then adds whole rows, and each 4x4 tile of `J^T J` is a sum over the rows of outer products
-/// of two 4-vectors kept in 16 accumulators (which vectorise, where dot products of columns
-/// form one long dependency chain per entry). Only the tiles on and below the diagonal are
+/// then adds whole rows, and each tile of `J^T J` (4 columns by 4, or with AVX2 8, rows) is a
+/// sum over the rows of outer products kept in accumulators (which vectorise, where dot
+/// products of columns form one long dependency chain per entry). Only the tiles on and below the diagonal are
 /// made: callers read the lower triangle ([`Information::at`] mirrors the rest).
 #[derive(Debug, Default)]
 pub(crate) struct Information {
@@ -660,25 +660,45 @@ fn lower_gram(rows: &[f64], width: usize, h: &mut [f64]) {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn lower_gram_avx2(rows: &[f64], width: usize, h: &mut [f64]) {
+    for jb in (0..width).step_by(4) {
+        let mut ib = jb;
+        while ib + 8 <= width {
+            gram_tile_avx2::<2>(rows, width, ib, jb, h);
+            ib += 8;
+        }
+        if ib < width {
+            gram_tile_avx2::<1>(rows, width, ib, jb, h);
+        }
+    }
+}
+
+/// Rows `ib..ib + 4 V` of columns `jb..jb + 4` of `J^T J`, in `4 V` AVX2 registers.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn gram_tile_avx2<const V: usize>(rows: &[f64], width: usize, ib: usize, jb: usize, h: &mut [f64]) {
     use std::arch::x86_64::{
         _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd,
     };
-    for jb in (0..width).step_by(4) {
-        for ib in (jb..width).step_by(4) {
-            let mut acc = [_mm256_setzero_pd(); 4];
-            for row in rows.chunks_exact(width) {
-                let a = &row[ib..ib + 4];
-                // SAFETY: `a` is 4 long.
-                let a = unsafe { _mm256_loadu_pd(a.as_ptr()) };
-                for (acc_j, b) in acc.iter_mut().zip(&row[jb..jb + 4]) {
-                    *acc_j = _mm256_add_pd(*acc_j, _mm256_mul_pd(a, _mm256_set1_pd(*b)));
-                }
+    let mut acc = [[_mm256_setzero_pd(); V]; 4];
+    for row in rows.chunks_exact(width) {
+        let a = &row[ib..ib + 4 * V];
+        let mut av = [_mm256_setzero_pd(); V];
+        for (v, x) in av.iter_mut().enumerate() {
+            // SAFETY: `a` is `4 V` long.
+            *x = unsafe { _mm256_loadu_pd(a[4 * v..].as_ptr()) };
+        }
+        for (acc_t, b) in acc.iter_mut().zip(&row[jb..jb + 4]) {
+            let b = _mm256_set1_pd(*b);
+            for (x, a) in acc_t.iter_mut().zip(&av) {
+                *x = _mm256_add_pd(*x, _mm256_mul_pd(*a, b));
             }
-            for (j, acc_j) in acc.iter().enumerate() {
-                let out = &mut h[(jb + j) * width + ib..][..4];
-                // SAFETY: `out` is 4 long.
-                unsafe { _mm256_storeu_pd(out.as_mut_ptr(), *acc_j) };
-            }
+        }
+    }
+    for (t, acc_t) in acc.iter().enumerate() {
+        let out = &mut h[(jb + t) * width + ib..][..4 * V];
+        for (v, x) in acc_t.iter().enumerate() {
+            // SAFETY: `out` is `4 V` long.
+            unsafe { _mm256_storeu_pd(out[4 * v..].as_mut_ptr(), *x) };
         }
     }
 }
