@@ -5,7 +5,9 @@
 #   1. GTSAM: batch Levenberg-Marquardt, then iSAM2 (QR) one update per state, as fast as it goes;
 #   2. gprflow: batch LM, then the incremental smoother one update per state, as fast as it goes;
 #   3. gprflow: the same with the older fixed-lag smoother (window plus background re-solves);
-#   4. gprflow: batch LM with one known-line factor per state (the cost of line factors).
+#   4. gprflow: batch LM with one known-line factor per state (the cost of line factors);
+#   5. gprflow: batch LM with its linearisation split between two threads (reported apart: the
+#      benchmark's batch figure is single-threaded).
 # Further arguments go to the problem generator (--seed S, --lap L, --radius R): problems
 # other than the default one, on which the smoother's thresholds were chosen.
 # Results: out/bench-estimate/*.json.
@@ -36,3 +38,5 @@ echo "== gprflow: the fixed-lag smoother, unpaced"
 "$gprflow" bench estimate "$problem" --smoother fixed-lag --json | tee "$out/ours-fixed-lag.json"
 echo "== gprflow: batch LM with one known-line factor per state"
 "$gprflow" bench estimate "$problem" --lines known --batch-only --json | tee "$out/ours-lines.json"
+echo "== gprflow: batch LM, linearising on two threads"
+"$gprflow" bench estimate "$problem" --batch-only --threads 2 --json | tee "$out/ours-threads2.json"

@@ -52,6 +52,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             lines,
             smoother,
             pace_hz,
+            linearize_threads: 1,
         },
     )?;
     writeln!(std::io::stdout().lock(), "{}", serde_json::to_string_pretty(&report)?)?;

@@ -5,7 +5,7 @@ use std::time::Instant;
 use nalgebra::DVector;
 
 use crate::graph::FactorGraph;
-use crate::linear::{Factorization, HessianStructure, NormalEquations, Ordering, linearize, linearize_into, retract};
+use crate::linear::{Factorization, HessianStructure, NormalEquations, Ordering, linearize_split_into, retract};
 use crate::values::{Values, Variable};
 use crate::{Error, Result};
 
@@ -24,6 +24,9 @@ pub struct LmParams {
     pub lambda_factor: f64,
     /// Give up when the damping grows past this.
     pub lambda_max: f64,
+    /// Threads that linearise (1: the caller's alone; more split the factors, see
+    /// [`crate::linear::linearize_split_into`]).
+    pub linearize_threads: usize,
 }
 
 impl Default for LmParams {
@@ -35,6 +38,7 @@ impl Default for LmParams {
             lambda_initial: 1e-5,
             lambda_factor: 10.0,
             lambda_max: 1e5,
+            linearize_threads: 1,
         }
     }
 }
@@ -116,7 +120,14 @@ pub fn levenberg_marquardt_keep_hessian(
     let mut lambda = params.lambda_initial;
     let mut factorization: Option<Factorization> = None;
     let t = Instant::now();
-    let mut ne = linearize(graph, factors, values, &st)?;
+    let mut ne = NormalEquations {
+        hessian: Vec::new(),
+        gradient: DVector::zeros(0),
+        error: 0.0,
+    };
+    let mut spare = Vec::new();
+    let threads = params.linearize_threads;
+    linearize_split_into(graph, factors, values, &st, (&mut ne, &mut spare), threads)?;
     let first_linearize_s = t.elapsed().as_secs_f64();
     let initial_error = ne.error;
     let mut report = LmReport {
@@ -200,7 +211,7 @@ pub fn levenberg_marquardt_keep_hessian(
                     }
                     let t = Instant::now();
                     factored_lambda = None;
-                    linearize_into(graph, factors, values, &st, &mut ne)?;
+                    linearize_split_into(graph, factors, values, &st, (&mut ne, &mut spare), threads)?;
                     report.linearize_s += t.elapsed().as_secs_f64();
                     break;
                 }

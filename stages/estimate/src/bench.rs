@@ -30,6 +30,8 @@ pub struct BatchFigures {
     pub solve_s: f64,
     /// Time evaluating candidate steps, s.
     pub evaluate_s: f64,
+    /// Threads that linearised.
+    pub linearize_threads: usize,
     /// ATE RMSE, no alignment, m.
     pub ate_rmse_m: f64,
     /// ATE max, m.
@@ -119,6 +121,8 @@ pub struct BenchOptions {
     /// would (`None`: as fast as the updates go, which starves the background re-solves of
     /// the states they would otherwise span).
     pub pace_hz: Option<f64>,
+    /// Threads that linearise in the batch solve (1: single-threaded).
+    pub linearize_threads: usize,
 }
 
 /// Solves `problem` in batch and (unless `options.smoother` is `None`) incrementally.
@@ -136,7 +140,10 @@ pub fn run(problem: &Problem, options: &BenchOptions) -> Result<BenchReport> {
         &all,
         &mut batch.values,
         &ordering,
-        &LmParams::default(),
+        &LmParams {
+            linearize_threads: options.linearize_threads,
+            ..LmParams::default()
+        },
         &mut None,
     )?;
     let ate = batch.ate(problem)?;
@@ -149,6 +156,7 @@ pub fn run(problem: &Problem, options: &BenchOptions) -> Result<BenchReport> {
         linearize_s: lm.linearize_s,
         solve_s: lm.solve_s,
         evaluate_s: lm.evaluate_s,
+        linearize_threads: options.linearize_threads.max(1),
         ate_rmse_m: ate.0,
         ate_max_m: ate.1,
     };

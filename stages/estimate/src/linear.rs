@@ -537,6 +537,60 @@ pub fn linearize_into(
     Ok(())
 }
 
+/// [`linearize_into`] on `threads` threads: the factors split in contiguous parts, each
+/// linearised into its own normal equations (`ne` for the first, `spare` for the others, kept
+/// for the next call), which are then added into `ne`. The result is the same for the same
+/// number of threads (not bit for bit the same as on one: the sums are grouped differently).
+///
+/// # Errors
+/// As [`linearize_into`].
+pub fn linearize_split_into(
+    graph: &FactorGraph,
+    factors: &[usize],
+    values: &Values,
+    structure: &HessianStructure,
+    (ne, spare): (&mut NormalEquations, &mut Vec<NormalEquations>),
+    threads: usize,
+) -> Result<()> {
+    let threads = threads.clamp(1, factors.len().max(1));
+    if threads == 1 {
+        return linearize_into(graph, factors, values, structure, ne);
+    }
+    let mut parts = factors.chunks(factors.len().div_ceil(threads));
+    let first = parts.next().unwrap_or_default();
+    let others: Vec<&[usize]> = parts.collect();
+    if spare.len() < others.len() {
+        spare.resize_with(others.len(), || NormalEquations {
+            hessian: Vec::new(),
+            gradient: DVector::zeros(0),
+            error: 0.0,
+        });
+    }
+    let spare = &mut spare[..others.len()];
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = others
+            .iter()
+            .zip(spare.iter_mut())
+            .map(|(part, ne_k)| scope.spawn(move || linearize_into(graph, part, values, structure, ne_k)))
+            .collect();
+        let mine = linearize_into(graph, first, values, structure, ne);
+        handles.into_iter().fold(mine, |done, h| {
+            let theirs = h
+                .join()
+                .unwrap_or_else(|_| Err(Error::LinearSolve("a linearising thread panicked".into())));
+            done.and(theirs)
+        })
+    })?;
+    for other in spare.iter() {
+        for (h, v) in ne.hessian.iter_mut().zip(&other.hessian) {
+            *h += v;
+        }
+        ne.gradient += &other.gradient;
+        ne.error += other.error;
+    }
+    Ok(())
+}
+
 /// One factor's information `J^T J` and `J^T r`, made from its whitened, robust-reweighted
 /// Jacobian, with the buffers to make the next one.
 ///
@@ -1096,6 +1150,37 @@ mod tests {
         ne.hessian[d] = -1.0;
         let e = Factorization::new(&st, &ne.hessian, 0.0).expect_err("indefinite");
         assert!(e.to_string().contains("column 100"), "{e}");
+    }
+
+    #[test]
+    fn linearising_on_threads_adds_up_to_one_thread() {
+        let (graph, values) = chain_with_closures(300, 7, 50);
+        let all: Vec<usize> = (0..graph.len()).collect();
+        let st = HessianStructure::new(&graph, &all, &values, &Ordering::all(&values)).expect("structure");
+        let one = linearize(&graph, &all, &values, &st).expect("linearize");
+        let mut runs = Vec::new();
+        for _ in 0..2 {
+            let mut ne = linearize(&graph, &[], &values, &st).expect("empty");
+            let mut spare = Vec::new();
+            linearize_split_into(&graph, &all, &values, &st, (&mut ne, &mut spare), 3).expect("threads");
+            assert_eq!(spare.len(), 2);
+            runs.push(ne);
+        }
+        let (three, again) = (&runs[0], &runs[1]);
+        let scale = one.hessian.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+        let worst = one
+            .hessian
+            .iter()
+            .zip(&three.hessian)
+            .fold(0.0_f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(worst <= 1e-12 * scale, "Hessian differs by {worst} (largest {scale})");
+        assert!((&one.gradient - &three.gradient).norm() <= 1e-12 * one.gradient.norm());
+        assert!((one.error - three.error).abs() <= 1e-12 * one.error);
+        // The same thread count gives the same numbers.
+        assert_eq!(
+            (&three.hessian, &three.gradient, three.error),
+            (&again.hessian, &again.gradient, again.error)
+        );
     }
 
     #[test]

@@ -28,6 +28,7 @@ fn run_with(problem: &Problem, smoother: SmootherParams) -> gprflow_estimate::be
             lines: LineMode::Off,
             smoother: Some(smoother),
             pace_hz: None,
+            linearize_threads: 1,
         },
     )
     .expect("bench")
@@ -71,6 +72,26 @@ fn batch_and_incremental_match_gtsam() {
         (ours.batch.ate_rmse_m - g("batch_ate_rmse_m")).abs() < ATE_TOL_M,
         "batch ATE: ours {} gtsam {}",
         ours.batch.ate_rmse_m,
+        g("batch_ate_rmse_m")
+    );
+    // The batch solve with its linearisation split between two threads reaches the same optimum.
+    let split = run(
+        &problem,
+        &BenchOptions {
+            lines: LineMode::Off,
+            smoother: None,
+            pace_hz: None,
+            linearize_threads: 2,
+        },
+    )
+    .expect("bench on two threads");
+    assert!(
+        rel(split.batch.final_error, g("batch_error")) < ERROR_REL_TOL
+            && (split.batch.ate_rmse_m - g("batch_ate_rmse_m")).abs() < ATE_TOL_M,
+        "batch on two threads: error {} ATE {}; gtsam {} {}",
+        split.batch.final_error,
+        split.batch.ate_rmse_m,
+        g("batch_error"),
         g("batch_ate_rmse_m")
     );
     let inc = ours.incremental.expect("incremental run");

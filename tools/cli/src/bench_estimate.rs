@@ -23,6 +23,8 @@ pub struct BenchEstimateArgs {
     pub marginalise: bool,
     /// Feed one state every `1 / pace_hz` seconds, as a live pipeline would.
     pub pace_hz: Option<f64>,
+    /// Threads that linearise in the batch solve.
+    pub threads: usize,
     /// JSON output.
     pub json: bool,
 }
@@ -49,6 +51,7 @@ pub fn bench_estimate(problem: &Path, args: &BenchEstimateArgs) -> anyhow::Resul
             lines: args.lines,
             smoother,
             pace_hz: args.pace_hz,
+            linearize_threads: args.threads,
         },
     )?;
     let mut out = std::io::stdout().lock();
@@ -69,8 +72,15 @@ fn print_table(out: &mut impl Write, r: &BenchReport) -> std::io::Result<()> {
     let b = &r.batch;
     writeln!(
         out,
-        "batch LM: {:.3} s, {} iterations, error {:.4e} -> {:.6e}; ATE {:.4} m (max {:.4})",
-        b.seconds, b.iterations, b.initial_error, b.final_error, b.ate_rmse_m, b.ate_max_m
+        "batch LM: {:.3} s ({} linearising thread{}), {} iterations, error {:.4e} -> {:.6e}; ATE {:.4} m (max {:.4})",
+        b.seconds,
+        b.linearize_threads,
+        if b.linearize_threads == 1 { "" } else { "s" },
+        b.iterations,
+        b.initial_error,
+        b.final_error,
+        b.ate_rmse_m,
+        b.ate_max_m
     )?;
     if let Some(i) = &r.incremental {
         writeln!(

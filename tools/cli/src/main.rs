@@ -610,6 +610,10 @@ enum BenchCommand {
         /// (the problem's own rate is 10 Hz); default: as fast as the updates go.
         #[arg(long, value_name = "HZ")]
         pace_hz: Option<f64>,
+        /// Threads that linearise in the batch solve (1: single-threaded, the benchmark's
+        /// figure; more split the factors between threads).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=256))]
+        threads: u16,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -915,6 +919,7 @@ fn main() -> ExitCode {
                     lag,
                     marginalise,
                     pace_hz,
+                    threads,
                     json,
                 },
         } => gprflow_cli::bench_estimate::bench_estimate(
@@ -930,6 +935,7 @@ fn main() -> ExitCode {
                 lag_states: lag,
                 marginalise,
                 pace_hz,
+                threads: usize::from(threads),
                 json,
             },
         ),
