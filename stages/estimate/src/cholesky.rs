@@ -141,25 +141,17 @@ fn assembly(
     col_ptr: &[usize],
     row_idx: &[usize],
 ) -> (Vec<usize>, Vec<Run>, Vec<usize>) {
-    let (begin, end) = (symbolic.supernode_begin(), symbolic.supernode_end());
-    let row_ptr = symbolic.col_ptr_for_row_idx();
     let val_ptr = symbolic.col_ptr_for_val();
-    let rows = symbolic.row_idx();
     let mut g2l = vec![usize::MAX; symbolic.nrows()];
     let mut run_ptr = Vec::with_capacity(symbolic.n_supernodes() + 1);
     let mut runs: Vec<Run> = Vec::new();
     let mut diagonal = vec![0; symbolic.nrows()];
     run_ptr.push(0);
-    for s in 0..symbolic.n_supernodes() {
-        let (s_start, s_end) = (begin[s], end[s]);
-        let ncols = s_end - s_start;
-        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
-        let nrows = ncols + pattern.len();
-        for (i, &r) in pattern.iter().enumerate() {
-            g2l[r] = ncols + i;
-        }
+    for (s, panel_start) in val_ptr.iter().enumerate().take(symbolic.n_supernodes()) {
+        let (s_start, s_end, pattern) = enter_supernode(symbolic, s, &mut g2l);
+        let nrows = s_end - s_start + pattern.len();
         for j in s_start..s_end {
-            let column = val_ptr[s] + (j - s_start) * nrows;
+            let column = panel_start + (j - s_start) * nrows;
             diagonal[j] = column + j - s_start;
             let first_run = runs.len();
             let entries = col_ptr[j]..col_ptr[j + 1];
@@ -184,6 +176,23 @@ fn assembly(
         run_ptr.push(runs.len());
     }
     (run_ptr, runs, diagonal)
+}
+
+/// Supernode `s` of `symbolic`: its first and end columns and its off-diagonal rows, with `g2l`
+/// set to each off-diagonal row's place in the supernode's panel (below its own columns' rows).
+/// The caller resets those entries of `g2l` when done with the supernode.
+fn enter_supernode<'a>(
+    symbolic: &'a SymbolicSupernodalCholesky<usize>,
+    s: usize,
+    g2l: &mut [usize],
+) -> (usize, usize, &'a [usize]) {
+    let (start, end) = (symbolic.supernode_begin()[s], symbolic.supernode_end()[s]);
+    let row_ptr = symbolic.col_ptr_for_row_idx();
+    let pattern = &symbolic.row_idx()[row_ptr[s]..row_ptr[s + 1]];
+    for (i, &r) in pattern.iter().enumerate() {
+        g2l[r] = end - start + i;
+    }
+    (start, end, pattern)
 }
 
 /// Buffers of [`factorize`], kept between factorisations of one structure.
@@ -236,13 +245,9 @@ pub(crate) fn factorize(
     let rows = symbolic.row_idx();
     let g2l = &mut work.global_to_local;
     for s in 0..symbolic.n_supernodes() {
-        let (s_start, s_end) = (begin[s], end[s]);
+        let (s_start, s_end, pattern) = enter_supernode(symbolic, s, g2l);
         let ncols = s_end - s_start;
-        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
         let nrows = ncols + pattern.len();
-        for (i, &r) in pattern.iter().enumerate() {
-            g2l[r] = ncols + i;
-        }
         let local = |r: usize, g2l: &[usize]| if r < s_end { r - s_start } else { g2l[r] };
         let (done, rest) = l_values.split_at_mut(val_ptr[s]);
         let ls = &mut rest[..val_ptr[s + 1] - val_ptr[s]];
@@ -498,18 +503,22 @@ pub(crate) fn solve_one(symbolic: &SymbolicSupernodalCholesky<usize>, l_values: 
     let n_super = symbolic.n_supernodes();
     let widest = (0..n_super).map(|s| row_ptr[s + 1] - row_ptr[s]).max().unwrap_or(0);
     let mut below = vec![0.0; widest];
+    // Supernode `s`: its first column, its columns, its off-diagonal rows and its panel.
+    let supernode = |s: usize| {
+        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
+        (
+            begin[s],
+            end[s] - begin[s],
+            pattern,
+            &l_values[val_ptr[s]..val_ptr[s + 1]],
+        )
+    };
     // Forward: L y = b.
     for s in 0..n_super {
-        let (s0, ncols) = (begin[s], end[s] - begin[s]);
-        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
-        let nrows = ncols + pattern.len();
-        let panel = &l_values[val_ptr[s]..val_ptr[s + 1]];
-        let t = &mut below[..pattern.len()];
-        for (ti, &r) in t.iter_mut().zip(pattern) {
-            *ti = x[r];
-        }
+        let (s0, ncols, pattern, panel) = supernode(s);
+        let t = gather(x, pattern, &mut below);
         let xs = &mut x[s0..s0 + ncols];
-        for (j, col) in panel.chunks_exact(nrows).enumerate() {
+        for (j, col) in panel.chunks_exact(ncols + pattern.len()).enumerate() {
             let xj = xs[j] / col[j];
             xs[j] = xj;
             for (xi, l) in xs[j + 1..].iter_mut().zip(&col[j + 1..ncols]) {
@@ -525,16 +534,10 @@ pub(crate) fn solve_one(symbolic: &SymbolicSupernodalCholesky<usize>, l_values: 
     }
     // Backward: L^T x = y.
     for s in (0..n_super).rev() {
-        let (s0, ncols) = (begin[s], end[s] - begin[s]);
-        let pattern = &rows[row_ptr[s]..row_ptr[s + 1]];
-        let nrows = ncols + pattern.len();
-        let panel = &l_values[val_ptr[s]..val_ptr[s + 1]];
-        let t = &mut below[..pattern.len()];
-        for (ti, &r) in t.iter_mut().zip(pattern) {
-            *ti = x[r];
-        }
+        let (s0, ncols, pattern, panel) = supernode(s);
+        let t = gather(x, pattern, &mut below);
         let xs = &mut x[s0..s0 + ncols];
-        for (j, col) in panel.chunks_exact(nrows).enumerate().rev() {
+        for (j, col) in panel.chunks_exact(ncols + pattern.len()).enumerate().rev() {
             let mut v = xs[j];
             for (xi, l) in xs[j + 1..].iter().zip(&col[j + 1..ncols]) {
                 v -= l * xi;
@@ -543,6 +546,15 @@ pub(crate) fn solve_one(symbolic: &SymbolicSupernodalCholesky<usize>, l_values: 
             xs[j] = v / col[j];
         }
     }
+}
+
+/// The entries of `x` at `rows`, into the front of `buffer`.
+fn gather<'a>(x: &[f64], rows: &[usize], buffer: &'a mut [f64]) -> &'a mut [f64] {
+    let t = &mut buffer[..rows.len()];
+    for (ti, &r) in t.iter_mut().zip(rows) {
+        *ti = x[r];
+    }
+    t
 }
 
 /// `a . b`, in four interleaved partial sums (which vectorise).
