@@ -120,11 +120,7 @@ pub fn levenberg_marquardt_keep_hessian(
     let mut lambda = params.lambda_initial;
     let mut factorization: Option<Factorization> = None;
     let t = Instant::now();
-    let mut ne = NormalEquations {
-        hessian: Vec::new(),
-        gradient: DVector::zeros(0),
-        error: 0.0,
-    };
+    let mut ne = NormalEquations::default();
     let mut spare = Vec::new();
     let threads = params.linearize_threads;
     linearize_split_into(graph, factors, values, &st, (&mut ne, &mut spare), threads)?;

@@ -347,8 +347,8 @@ fn small_panel_cholesky_avx2(panel: &mut [f64], nrows: usize, ncols: usize) -> R
 ///
 /// Columns are taken four at a time: the updates from the columns left of the four, over the
 /// rows below them, run as a register-blocked product (each entry of a left column loaded
-/// once for the four), skipping the left columns that are zero on all four (the explicit
-/// zeros of merged supernodes); then the four are finished one by one. Every entry still takes
+/// once for the four), skipping the left columns that are zero on all four (blocks of zeros
+/// that the structure holds); then the four are finished one by one. Every entry still takes
 /// its updates one by one in increasing column order, as in the plain column-by-column
 /// algorithm, so the numbers are those of it.
 #[inline(always)]
@@ -420,7 +420,7 @@ fn column_update(panel: &mut [f64], nrows: usize, j: usize, k: usize, nmadd: imp
 /// Columns `jb..jb + BLOCK` take the updates of the columns `left` (increasing, all left of
 /// `jb`), over their rows from `jb` down: the rows of their diagonal block entry by entry (only
 /// those on or below the diagonal), the rows below in tiles of [`TILE`] rows (then one of half
-/// that) held in registers across all of `left`, the last few entry by entry.
+/// that, then single rows) held in registers across all of `left`.
 #[inline(always)]
 fn block_update(
     panel: &mut [f64],
@@ -450,13 +450,7 @@ fn block_update(
         i += TILE / 2;
     }
     for i in i..nrows {
-        for t in 0..BLOCK {
-            let mut x = block[t * nrows + i];
-            for &k in left {
-                x = nmadd(done[k * nrows + i], done[k * nrows + jb + t], x);
-            }
-            block[t * nrows + i] = x;
-        }
+        tile_update::<1>(done, block, nrows, jb, i, left, nmadd);
     }
 }
 

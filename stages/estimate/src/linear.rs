@@ -408,6 +408,17 @@ pub struct NormalEquations {
     pub error: f64,
 }
 
+impl Default for NormalEquations {
+    /// Empty, to be filled by [`linearize_into`].
+    fn default() -> Self {
+        Self {
+            hessian: Vec::new(),
+            gradient: DVector::zeros(0),
+            error: 0.0,
+        }
+    }
+}
+
 /// Linearises the factors `factors` of `graph` at `values`: whitened, robust-reweighted
 /// Jacobians accumulated into `J^T J` and `J^T r` over the free variables of `structure`'s
 /// ordering (variables it does not hold are constants).
@@ -420,11 +431,7 @@ pub fn linearize(
     values: &Values,
     structure: &HessianStructure,
 ) -> Result<NormalEquations> {
-    let mut ne = NormalEquations {
-        hessian: Vec::new(),
-        gradient: DVector::zeros(0),
-        error: 0.0,
-    };
+    let mut ne = NormalEquations::default();
     linearize_into(graph, factors, values, structure, &mut ne)?;
     Ok(ne)
 }
@@ -560,11 +567,7 @@ pub fn linearize_split_into(
     let first = parts.next().unwrap_or_default();
     let others: Vec<&[usize]> = parts.collect();
     if spare.len() < others.len() {
-        spare.resize_with(others.len(), || NormalEquations {
-            hessian: Vec::new(),
-            gradient: DVector::zeros(0),
-            error: 0.0,
-        });
+        spare.resize_with(others.len(), NormalEquations::default);
     }
     let spare = &mut spare[..others.len()];
     std::thread::scope(|scope| {
@@ -597,8 +600,9 @@ pub fn linearize_split_into(
 /// The Jacobian is held by rows, each padded with zeros to a multiple of 4 columns: whitening
 /// then adds whole rows, and each tile of `J^T J` (4 columns by 4, or with AVX2 8, rows) is a
 /// sum over the rows of outer products kept in accumulators (which vectorise, where dot
-/// products of columns form one long dependency chain per entry). Only the tiles on and below the diagonal are
-/// made: callers read the lower triangle ([`Information::at`] mirrors the rest).
+/// products of columns form one long dependency chain per entry). Only the tiles on and below
+/// the diagonal are made: callers read the lower triangle ([`Information::at`] mirrors the
+/// rest).
 #[derive(Debug, Default)]
 pub(crate) struct Information {
     /// Rows of the unwhitened Jacobian, `width` long.

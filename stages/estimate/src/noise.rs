@@ -124,13 +124,9 @@ impl NoiseModel {
     /// `R r`.
     #[must_use]
     pub fn whiten(&self, r: &DVector<f64>) -> DVector<f64> {
-        if self.diagonal {
-            r.component_mul(&self.sqrt_info.diagonal())
-        } else {
-            let mut out = r.clone();
-            upper_mul_in_place(self.sqrt_info.as_slice(), out.as_mut_slice());
-            out
-        }
+        let mut out = DVector::zeros(r.len());
+        self.whiten_into(r.as_slice(), out.as_mut_slice());
+        out
     }
 
     /// `R r` into `out` (the same length as `r`).
