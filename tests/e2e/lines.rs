@@ -1,10 +1,9 @@
 //! SLAM with line features: the `lines` stage finds the buried pipe and its factors beat
 //! odometry.
 
-use std::path::Path;
-
 use crate::common::{gprflow, repo, stderr};
 use crate::sim::pipe_sample;
+use crate::{eval_json, launch_recorded};
 
 /// SLAM with line features on the pipe-field sample: every hyperbola the `lines` stage finds
 /// is a crossing of the true pipe, one line comes out, and the line factors bring the
@@ -46,19 +45,7 @@ fn slam_detects_the_pipe_and_beats_odometry() {
         odom.to_str().expect("utf8"),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let eval = |rec: &Path| -> serde_json::Value {
-        let o = gprflow(&[
-            "eval",
-            rec.to_str().expect("utf8"),
-            "--truth",
-            sample,
-            "--format",
-            "json",
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-        serde_json::from_slice(&o.stdout).expect("json")
-    };
-    let (with_lines, without) = (eval(&slam), eval(&odom));
+    let (with_lines, without) = (eval_json(&slam, sample), eval_json(&odom, sample));
     let obs = &with_lines["line_observations"];
     // the drive crosses the pipe four times in 150 s; nothing else is taken for a line
     assert_eq!(obs["observations"], 4, "{obs}");
@@ -127,20 +114,9 @@ fn a_turn_cuts_the_apex_it_would_mismeasure() {
     let dir = tempfile::tempdir().expect("tempdir");
     let rec = crate::sim::sim_input("unseen_pipes_parallel.yaml", "lawnmower", "300");
     let rec = rec.to_str().expect("utf8");
-    let slam = dir.path().join("slam.mcap");
-    let o = gprflow(&[
-        "launch",
-        "graphs/slam.yaml",
-        "--set",
-        &format!("recording={rec}"),
-        "--record",
-        slam.to_str().expect("utf8"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (_, o) = launch_recorded(dir.path(), "graphs/slam.yaml", &[format!("recording={rec}")]);
     assert!(stderr(&o).contains("cut_by_turns=1"), "{}", stderr(&o));
-    let o = gprflow(&["eval", slam.to_str().expect("utf8"), "--truth", rec, "--format", "json"]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    let v = eval_json(&dir.path().join("run.mcap"), rec);
     let obs = &v["line_observations"];
     assert_eq!(obs["observations"], obs["matched"], "{obs}");
     let lines = &v["lines"];

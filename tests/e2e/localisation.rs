@@ -1,13 +1,11 @@
 //! Localisation on simulated runs: odometry from IMU and wheel, wheel calibration,
 //! registration (engineered, learned, oracle) and the estimator against the truth.
 
-use std::path::Path;
-
 use gprflow::msg::{RegistrationAttempt, RegistrationCheck};
 
 use crate::common::{BASEMENT, gprflow, logged_count, stderr};
 use crate::sim::simulated;
-use crate::{decode_all, launch_recorded};
+use crate::{decode_all, eval_json, launch_recorded};
 
 #[test]
 fn estimate_tracks_a_simulated_garage_loop_from_imu_and_wheel() {
@@ -44,20 +42,6 @@ fn estimate_tracks_a_simulated_garage_loop_from_imu_and_wheel() {
     let ate = e["ate"]["rmse"].as_f64().expect("ate");
     let aligned = e["ate_aligned"]["rmse"].as_f64().expect("aligned");
     assert!(ate < 0.4 && aligned < 0.15, "ATE {ate} m, aligned {aligned} m");
-}
-
-/// `gprflow eval RUN --truth TRUTH --format json`.
-fn eval_json(run: &Path, truth: &str) -> serde_json::Value {
-    let o = gprflow(&[
-        "eval",
-        run.to_str().expect("utf8"),
-        "--truth",
-        truth,
-        "--format",
-        "json",
-    ]);
-    assert!(o.status.success(), "eval: {}", stderr(&o));
-    serde_json::from_slice(&o.stdout).expect("eval json")
 }
 
 #[test]

@@ -90,6 +90,20 @@ fn launch_recorded(dir: &Path, graph: &str, sets: &[String]) -> (BTreeMap<String
     (payloads(&rec), o)
 }
 
+/// `gprflow eval RUN --truth TRUTH --format json`.
+fn eval_json(run: &Path, truth: &str) -> serde_json::Value {
+    let o = gprflow(&[
+        "eval",
+        run.to_str().expect("utf8"),
+        "--truth",
+        truth,
+        "--format",
+        "json",
+    ]);
+    assert!(o.status.success(), "eval: {}", stderr(&o));
+    serde_json::from_slice(&o.stdout).expect("eval json")
+}
+
 fn decode_all<'a, M: gprflow::msg::CdrDecode<'a>>(msgs: &'a [Vec<u8>]) -> Vec<M> {
     msgs.iter()
         .map(|p| gprflow::msg::decode::<M>(p).expect("decodes"))
